@@ -1,0 +1,149 @@
+"""The `mvfem` command: a thin layer over the Python API (see CONTRACT.md).
+
+Exit codes: 0 done, 2 bad input (one line on stderr), 3 solver stopped short.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+
+from mvfem.errors import InputError, SolverError
+
+__all__ = ["main"]
+
+log = logging.getLogger("mvfem")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage dump) and no exit, so main() returns the code."""
+
+    def error(self, message):  # noqa: D401 - argparse API
+        raise InputError(f"{self.prog}: {message}")
+
+
+def _setup_logging(verbose: bool) -> None:
+    from mpi4py import MPI
+
+    level = logging.DEBUG if verbose else logging.INFO
+    root = logging.getLogger("mvfem")
+    root.setLevel(level if MPI.COMM_WORLD.rank == 0 else logging.WARNING)
+    if not root.handlers:
+        h = logging.StreamHandler(sys.stderr)
+        h.setFormatter(logging.Formatter("%(message)s"))
+        root.addHandler(h)
+    root.propagate = False
+    # FFCx calls logging.basicConfig() and its JIT build logs at INFO through the root logger
+    import ffcx  # noqa: F401
+
+    logging.getLogger().setLevel(logging.WARNING)
+    for name in ("ffcx", "UFL", "ufl"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def _say(*args) -> None:
+    from mpi4py import MPI
+
+    if MPI.COMM_WORLD.rank == 0:
+        print(*args, flush=True)
+
+
+def _parse_range(text: str, option: str) -> tuple[float, float]:
+    parts = text.split(":")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        return float(parts[0]), float(parts[1])
+    except ValueError:
+        raise InputError(f"{option}: expected MIN:MAX (e.g. {option}=-0.5:0.5), got {text!r}") from None
+
+
+def _cmd_biaxial(args) -> int:
+    from mvfem.biaxial import run_biaxial, strain_grid
+    from mvfem.materials import LEAFLETS, get_set
+    from mvfem.outputs import prepare_out
+
+    smin, smax = _parse_range(args.strain, "--strain")
+    leaflets = LEAFLETS if args.leaflet is None else (args.leaflet,)
+    sets = tuple(s.strip() for s in args.sets.split(",") if s.strip()) if args.sets else None
+    strain_grid(smin, smax, args.points)  # validate before touching the output directory
+    for leaflet in leaflets:
+        for name in sets or ():
+            get_set(name, leaflet)
+    out = prepare_out(args.out)
+    t0 = time.perf_counter()
+    res = run_biaxial(out, leaflets=leaflets, strain_min=smin, strain_max=smax,
+                      points=args.points, sets=sets)
+    _say(f"biaxial: {res['rows']} states, {len(res['curves'])} curves in "
+         f"{time.perf_counter() - t0:.1f} s")
+    if res["overflow"]:
+        _say(f"  {res['overflow']} stresses exceed float64 (exponential laws in strong "
+             "compression) and are left empty in the CSV")
+    for f in res["files"]:
+        _say(f"  wrote {f}")
+    return 0
+
+
+def _cmd_materials(args) -> int:
+    from mvfem.forms import law_parameters
+    from mvfem.materials import LEAFLETS, MISSING, parameter_sets
+
+    leaflets = LEAFLETS if args.leaflet is None else (args.leaflet,)
+    for leaflet in leaflets:
+        _say(f"{leaflet} leaflet")
+        _say(f"  {'set':<10} {'law':<10} {'parameters':<42} {'h (mm)':>6}  {'checked':<8} source")
+        for s in parameter_sets(leaflet):
+            units = {"E": " Pa", "c0": " Pa", "mu": " Pa"}
+            p = ", ".join(f"{k} = {s.params[k]:g}{units.get(k, '')}" for k in law_parameters(s.law))
+            _say(f"  {s.name:<10} {s.law:<10} {p:<42} {s.thickness_mm:>6.2f}  "
+                 f"{'yes' if s.verified else 'NO':<8} {s.source}")
+        if leaflet in MISSING:
+            names, why = MISSING[leaflet]
+            _say(f"  {names[0]}..{names[-1]}: not available: {why}")
+        _say("")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of `mvfem` (exposed for documentation and tests)."""
+    p = _Parser(prog="mvfem", description="Mitral valve closure with hyperelastic membranes.")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug output")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    b = sub.add_parser("biaxial", help="the four canonical biaxial curves of every parameter set")
+    b.add_argument("--leaflet", choices=("anterior", "posterior"),
+                   help="one leaflet's sets (default: both)")
+    b.add_argument("--sets", help="comma-separated set names (default: all of the leaflet)")
+    b.add_argument("--strain", default="-0.5:0.5",
+                   help="imposed strain range MIN:MAX, as --strain=-0.5:0.5 (default)")
+    b.add_argument("--points", type=int, default=101, help="strain values per curve (101)")
+    b.add_argument("--out", default="results/biaxial", help="output directory")
+    b.set_defaults(func=_cmd_biaxial)
+
+    m = sub.add_parser("materials", help="list parameter sets with law, values, thickness, source")
+    m.add_argument("--leaflet", choices=("anterior", "posterior"))
+    m.set_defaults(func=_cmd_materials)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run `mvfem` with ``argv`` (default: sys.argv[1:]); returns the exit code."""
+    try:
+        args = build_parser().parse_args(argv)
+        _setup_logging(args.verbose)
+        return args.func(args)
+    except InputError as e:
+        print(f"mvfem: error: {e}", file=sys.stderr, flush=True)
+        return 2
+    except SolverError as e:
+        print(f"mvfem: solver stopped: {e}", file=sys.stderr, flush=True)
+        return 3
+    except KeyboardInterrupt:
+        print("mvfem: interrupted", file=sys.stderr, flush=True)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
