@@ -229,9 +229,11 @@ def plot_curves(curves: list[Curve], leaflet: str, path: Path) -> None:
 
     mine = [c for c in curves if c.leaflet == leaflet]
     names = list(dict.fromkeys(c.set for c in mine))
-    colours = plt.get_cmap("tab20")(np.linspace(0, 1, 20))[: len(names)]
-    styles = {n: dict(color=colours[i], lw=2.2 if n in ("MNY-mean", "Holzapfel", "SVK") else 1.2,
-                      ls="--" if n in ("Holzapfel", "SVK") else "-") for i, n in enumerate(names)}
+    special = {"MNY-mean": dict(color="k", lw=2.4, ls="-"),
+               "Holzapfel": dict(color="tab:purple", lw=2.2, ls="--"),
+               "SVK": dict(color="0.45", lw=2.0, ls="-.")}
+    palette = iter(plt.get_cmap("tab10").colors)
+    styles = {n: special.get(n) or dict(color=next(palette), lw=1.2, ls="-") for n in names}
     fig, axes = plt.subplots(2, 2, figsize=(11, 8.5), sharey=True)
     for ax, mode in zip(axes.flat, MODES):
         d = varied_direction(mode)

@@ -1,0 +1,49 @@
+# mvfem: `make demo` and `make test` do all the set-up on a fresh Debian (bookworm) machine.
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.mvfem-setup
+# dolfinx, gmsh, meshio and the numerical stack from Debian, so that every compiled piece
+# (PETSc, MPI, numpy ABI) matches; OpenBLAS replaces the slow reference BLAS under MUMPS.
+APT_PACKAGES := python3-dolfinx python3-gmsh python3-meshio python3-venv python3-pip \
+	python3-matplotlib python3-scipy libopenblas0-pthread openmpi-bin
+MPI_ENV := OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OPENBLAS_NUM_THREADS=1
+MPIRUN := $(MPI_ENV) mpirun --oversubscribe -n 2
+
+.PHONY: setup demo test test-serial test-mpi clean
+
+setup: $(STAMP)
+	@:
+
+$(STAMP): pyproject.toml Makefile
+	@missing=$$(for p in $(APT_PACKAGES); do \
+	    dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; \
+	  done); \
+	if [ -n "$$missing" ]; then \
+	  echo "setup: apt-get install" $$missing; \
+	  sudo=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+	  $$sudo apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $$sudo apt-get install -y -qq --no-install-recommends \
+	    $$missing > /dev/null || exit 1; \
+	fi
+	@[ -x $(PY) ] || { echo "setup: venv $(VENV)"; /usr/bin/python3 -m venv --system-site-packages $(VENV); }
+	@# never let pip replace Debian's numpy: dolfinx and petsc4py are built against it
+	@$(PY) -c "import numpy; print('numpy==' + numpy.__version__)" > $(VENV)/constraints.txt
+	@echo "setup: pip install -e .[test]"
+	@$(PY) -m pip install -q --disable-pip-version-check -c $(VENV)/constraints.txt -e '.[test]'
+	@touch $@
+
+# Until the valve exists (issue 5) the demo writes the canonical biaxial curves.
+demo: setup
+	$(VENV)/bin/mvfem biaxial --out results/demo
+
+test: test-serial test-mpi
+
+test-serial: setup
+	$(PY) -m pytest -q
+
+test-mpi: setup
+	$(MPIRUN) $(PY) -m pytest -q -m mpi -p no:cacheprovider --color=no
+
+clean:
+	rm -rf $(VENV) results .pytest_cache *.egg-info

@@ -1,0 +1,235 @@
+"""Nonlinear solution with PETSc SNES (petsc4py), and adaptive load stepping.
+
+dolfinx 0.5 has no SNES-backed problem class, so :class:`SNESProblem` wires the assembly of a
+residual form and its Jacobian into a ``PETSc.SNES`` whose options live under their own prefix
+(never the global unprefixed database). :class:`LoadStepper` drives a load parameter from 0 to
+1 (or any target), halves the step and restores the last converged state on failure, and grows
+it after easy steps.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from petsc4py import PETSc
+
+__all__ = ["SNESProblem", "SolveInfo", "LoadStepper", "StepRecord", "DEFAULT_OPTIONS",
+           "reason_name"]
+
+log = logging.getLogger(__name__)
+
+#: SNES/KSP options every problem starts from (a scene's [solver] may override them)
+DEFAULT_OPTIONS = {
+    "snes_type": "newtonls",
+    "snes_linesearch_type": "bt",
+    "snes_rtol": 1e-9,
+    "snes_atol": 1e-10,
+    "snes_stol": 0.0,
+    "snes_max_it": 30,
+    "ksp_type": "preonly",
+    "pc_type": "lu",
+    "pc_factor_mat_solver_type": "mumps",
+    # MUMPS workspace margin (%): pivoting on a nearly singular tangent needs more than 20 %
+    "mat_mumps_icntl_14": 50,
+}
+
+_REASONS = {v: k for k, v in vars(PETSc.SNES.ConvergedReason).items() if isinstance(v, int)}
+
+
+def reason_name(reason: int) -> str:
+    """Name of a SNES converged/diverged reason, e.g. ``CONVERGED_FNORM_RELATIVE``."""
+    return _REASONS.get(reason, str(reason))
+
+
+@dataclass
+class SolveInfo:
+    """Outcome of one SNES solve."""
+
+    converged: bool
+    iterations: int
+    reason: str
+    residual_norm: float
+    assembly_s: float = 0.0
+    solve_s: float = 0.0
+
+
+class SNESProblem:
+    """Newton's method for ``F(u; v) = 0`` with Dirichlet conditions, via PETSc SNES.
+
+    Args:
+        F: residual form (UFL, linear in the test function).
+        u: the unknown ``fem.Function``; holds the initial guess and receives the solution.
+        bcs: Dirichlet conditions (their values may change between solves).
+        J: Jacobian form; ``ufl.derivative(F, u)`` when omitted.
+        prefix: PETSc options prefix of this problem.
+        options: options set under the prefix, on top of :data:`DEFAULT_OPTIONS`.
+        form_compiler_params / jit_params: passed to ``fem.form``.
+    """
+
+    def __init__(self, F, u, bcs=(), J=None, prefix: str = "mvfem_", options: dict | None = None,
+                 form_compiler_params: dict | None = None, jit_params: dict | None = None):
+        import ufl
+        from dolfinx import fem
+        from dolfinx.fem import petsc as fpetsc
+
+        self.u = u
+        self.bcs = list(bcs)
+        if J is None:
+            J = ufl.derivative(F, u, ufl.TrialFunction(u.function_space))
+        kw = dict(form_compiler_params=form_compiler_params or {}, jit_params=jit_params or {})
+        self.L = fem.form(F, **kw)
+        self.a = fem.form(J, **kw)
+        self.A = fpetsc.create_matrix(self.a)
+        self.b = fpetsc.create_vector(self.L)
+        self.x = u.vector.copy()
+        self.comm = u.function_space.mesh.comm
+        self.assembly_s = 0.0
+        self.solve_s = 0.0
+        self.residual_hooks: list[Callable[[PETSc.Vec], None]] = []
+
+        self.snes = PETSc.SNES().create(self.comm)
+        self.prefix = prefix
+        self.snes.setOptionsPrefix(prefix)
+        opts = PETSc.Options(prefix)
+        for k, v in {**DEFAULT_OPTIONS, **(options or {})}.items():
+            opts[k] = v
+        self.snes.setFunction(self._residual, self.b)
+        self.snes.setJacobian(self._jacobian, self.A)
+        self.snes.setFromOptions()
+        self.snes.getKSP().setFromOptions()
+        self.snes.getKSP().getPC().setFromOptions()
+
+    def _update_u(self, x: PETSc.Vec) -> None:
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        x.copy(self.u.vector)
+        self.u.vector.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+
+    def _residual(self, snes, x, b) -> None:
+        from dolfinx.fem import petsc as fpetsc
+
+        t0 = time.perf_counter()
+        self._update_u(x)
+        with b.localForm() as bl:
+            bl.set(0.0)
+        fpetsc.assemble_vector(b, self.L)
+        fpetsc.apply_lifting(b, [self.a], bcs=[self.bcs], x0=[x], scale=-1.0)
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        fpetsc.set_bc(b, self.bcs, x, -1.0)
+        for hook in self.residual_hooks:
+            hook(b)
+        # a state where the exponential laws overflow must not pass as a residual: PETSc's
+        # line search backtracks on inf, and SNES stops with DIVERGED_FNORM_NAN otherwise
+        if not np.all(np.isfinite(b.array_r)):
+            with b.localForm() as bl:
+                bl.set(np.inf)
+        self.assembly_s += time.perf_counter() - t0
+
+    def _jacobian(self, snes, x, A, P) -> None:
+        from dolfinx.fem import petsc as fpetsc
+
+        t0 = time.perf_counter()
+        A.zeroEntries()
+        fpetsc.assemble_matrix(A, self.a, bcs=self.bcs)
+        A.assemble()
+        self.assembly_s += time.perf_counter() - t0
+
+    def solve(self) -> SolveInfo:
+        """Solve from the current ``u``; on return ``u`` holds the last Newton iterate."""
+        a0, t0 = self.assembly_s, time.perf_counter()
+        self.u.vector.copy(self.x)
+        self.snes.solve(None, self.x)
+        self._update_u(self.x)
+        reason = self.snes.getConvergedReason()
+        fnorm = self.snes.getFunctionNorm()
+        total = time.perf_counter() - t0
+        assembly = self.assembly_s - a0
+        self.solve_s += total - assembly
+        return SolveInfo(converged=reason > 0 and bool(np.isfinite(fnorm)),
+                         iterations=self.snes.getIterationNumber(), reason=reason_name(reason),
+                         residual_norm=float(fnorm), assembly_s=assembly, solve_s=total - assembly)
+
+    def residual_norm(self) -> float:
+        """The l2 norm of the residual at the current ``u`` (boundary rows included)."""
+        self.u.vector.copy(self.x)
+        self._residual(self.snes, self.x, self.b)
+        return self.b.norm()
+
+    def destroy(self) -> None:
+        """Free the PETSc objects."""
+        for obj in (self.snes, self.A, self.b, self.x):
+            obj.destroy()
+
+
+@dataclass
+class StepRecord:
+    """One attempted load step."""
+
+    load: float
+    converged: bool
+    iterations: int
+    reason: str
+
+
+@dataclass
+class LoadStepper:
+    """Adaptive continuation in a load parameter ``t`` from ``start`` to ``target``.
+
+    ``set_load(t)`` applies the load ``t`` (scales pressure constants, boundary values, ...);
+    ``solve()`` returns a :class:`SolveInfo`. A failed step restores the last converged state
+    and halves the increment; ``grow`` multiplies it after a step that needed at most
+    ``easy_iterations`` Newton iterations; below ``min_step`` the stepper gives up.
+
+    Attributes:
+        history: every attempted step, in order.
+    """
+
+    set_load: Callable[[float], None]
+    solve: Callable[[], SolveInfo]
+    get_state: Callable[[], np.ndarray]
+    set_state: Callable[[np.ndarray], None]
+    first_step: float = 0.25
+    min_step: float = 1e-4
+    max_step: float = 1.0
+    grow: float = 1.5
+    easy_iterations: int = 6
+    max_steps: int = 500
+    on_step: Callable[[StepRecord, "LoadStepper"], None] | None = None
+    history: list[StepRecord] = field(default_factory=list)
+
+    def run(self, target: float = 1.0, start: float = 0.0) -> tuple[bool, float]:
+        """Advance to ``target``; returns (reached, last converged load)."""
+        t, dt = start, min(self.first_step, target - start)
+        saved = self.get_state()
+        while t < target - 1e-14 and len(self.history) < self.max_steps:
+            t_new = min(t + dt, target)
+            self.set_load(t_new)
+            info = self.solve()
+            rec = StepRecord(t_new, info.converged, info.iterations, info.reason)
+            self.history.append(rec)
+            if self.on_step is not None:
+                self.on_step(rec, self)
+            if info.converged:
+                t, saved = t_new, self.get_state()
+                if info.iterations <= self.easy_iterations:
+                    dt = min(dt * self.grow, self.max_step)
+            else:
+                self.set_state(saved)
+                dt /= 2
+                if dt < self.min_step * (target - start):
+                    break
+        self.set_load(t)
+        return t >= target - 1e-14, t
+
+    @property
+    def converged_steps(self) -> int:
+        """Number of accepted load steps."""
+        return sum(r.converged for r in self.history)
+
+    @property
+    def newton_iterations(self) -> int:
+        """Newton iterations over all attempted steps."""
+        return sum(r.iterations for r in self.history)

@@ -1,0 +1,50 @@
+"""Shared fixtures; MPI-safe teardown (dolfinx's own test conftest does the same)."""
+
+from __future__ import annotations
+
+import gc
+import logging
+
+import pytest
+from mpi4py import MPI
+
+# FFCx calls logging.basicConfig() and logs each JIT build at INFO through the root logger
+logging.getLogger().setLevel(logging.WARNING)
+
+
+@pytest.fixture(autouse=True)
+def _collect_and_sync():
+    yield
+    gc.collect(0)
+    MPI.COMM_WORLD.Barrier()
+
+
+@pytest.fixture
+def comm():
+    return MPI.COMM_WORLD
+
+
+@pytest.fixture
+def shared_tmp(tmp_path, comm):
+    """A temporary directory that every rank sees (rank 0's)."""
+    return comm.bcast(tmp_path, root=0)
+
+
+def tilted_frame(angle_x: float = 0.4, angle_z: float = 0.9):
+    """An orthonormal frame (columns t1, t2, n) rotated away from the coordinate axes."""
+    import numpy as np
+
+    cx, sx, cz, sz = np.cos(angle_x), np.sin(angle_x), np.cos(angle_z), np.sin(angle_z)
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return Rz @ Rx
+
+
+def rotation(axis, angle: float):
+    """Rotation matrix about ``axis`` by ``angle`` (Rodrigues)."""
+    import numpy as np
+
+    k = np.asarray(axis, dtype=float)
+    k = k / np.linalg.norm(k)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K

@@ -1,0 +1,101 @@
+"""The CLI, in process: biaxial and materials; bad input exits 2 with one line, no traceback."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+from test_materials import closed_form
+
+from mvfem.cli import main
+from mvfem.materials import get_set
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_biaxial_writes_csv_and_figures(tmp_path, capsys):
+    out = tmp_path / "bx"
+    assert main(["biaxial", "--out", str(out), "--points", "11"]) == 0
+    rows = _rows(out / "biaxial.csv")
+    assert list(rows[0]) == ["leaflet", "set", "mode", "strain_parallel", "strain_perpendicular",
+                             "sigma_parallel_Pa", "sigma_perpendicular_Pa"]
+    # both leaflets: 11 anterior + 3 posterior sets, four modes, 11 strains
+    assert len(rows) == (11 + 3) * 4 * 11
+    assert {r["mode"] for r in rows} == {"equibiaxial", "off-biaxial", "strip-parallel",
+                                        "strip-perpendicular"}
+    sets = {(r["leaflet"], r["set"]) for r in rows}
+    assert ("anterior", "CP08") in sets and ("posterior", "MNY-mean") in sets
+    assert ("posterior", "CP01") not in sets
+    for leaflet in ("anterior", "posterior"):
+        assert (out / f"biaxial_{leaflet}.png").stat().st_size > 20_000
+    # the CSV carries the closed-form stress (an independent check of what is written)
+    for r in rows:
+        if r["sigma_parallel_Pa"] == "":
+            continue
+        s = get_set(r["set"], r["leaflet"])
+        l1, l2 = 1 + float(r["strain_parallel"]), 1 + float(r["strain_perpendicular"])
+        cp, cq = closed_form(s.law, s.params, np.array(l1), np.array(l2))
+        scale = max(abs(cp), abs(cq), s.params.get("c0", s.params.get("E", 1.0)))
+        assert abs(float(r["sigma_parallel_Pa"]) - cp) < 1e-8 * scale
+        assert abs(float(r["sigma_perpendicular_Pa"]) - cq) < 1e-8 * scale
+    # strip-perpendicular holds the parallel strain at +15 %, off-biaxial is 1.5 x
+    assert all(float(r["strain_parallel"]) == pytest.approx(0.15) for r in rows
+               if r["mode"] == "strip-perpendicular")
+    assert all(float(r["strain_perpendicular"]) == pytest.approx(1.5 * float(r["strain_parallel"]))
+               for r in rows if r["mode"] == "off-biaxial")
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_biaxial_one_leaflet_and_rerun_same_dir(tmp_path):
+    out = tmp_path / "post"
+    args = ["biaxial", "--leaflet", "posterior", "--points", "5", "--strain=0:0.3", "--out", str(out)]
+    assert main(args) == 0
+    assert main(args) == 0  # mvfem may write again where it wrote before
+    rows = _rows(out / "biaxial.csv")
+    assert {r["leaflet"] for r in rows} == {"posterior"}
+    assert len(rows) == 3 * 4 * 5
+    assert not (out / "biaxial_anterior.png").exists()
+
+
+def test_materials_lists_sets_and_missing(capsys):
+    assert main(["materials"]) == 0
+    text = capsys.readouterr().out
+    for name in ("CP01", "CP08", "MNY-mean", "Holzapfel", "SVK", "1446.5", "305.4", "4.15"):
+        assert name in text
+    assert "not available" in text and "Table II" in text
+
+
+@pytest.mark.parametrize("args,words", [
+    (["biaxial", "--sets", "CP09"], ["CP09", "unknown"]),
+    (["biaxial", "--leaflet", "posterior", "--sets", "CP03"], ["CP03", "not available"]),
+    (["biaxial", "--strain", "abc"], ["--strain", "MIN:MAX"]),
+    (["biaxial", "--strain=0.5:-0.5"], ["--strain", "not below"]),
+    (["biaxial", "--strain=-1.2:0.5"], ["--strain", "stretch"]),
+    (["biaxial", "--points", "1"], ["--points"]),
+    (["biaxial", "--points", "many"], ["--points", "invalid int"]),
+    (["biaxial", "--leaflet", "middle"], ["--leaflet", "middle"]),
+    (["nonsense"], ["nonsense"]),
+])
+def test_bad_input_exits_2_with_one_line(tmp_path, capsys, args, words):
+    out = tmp_path / "never"
+    assert main(args + ["--out", str(out)] if args[0] == "biaxial" else args) == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for w in words:
+        assert w in lines[0]
+    assert not out.exists()  # nothing written on bad input
+
+
+def test_refuses_user_directory(tmp_path, capsys):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "biaxial.csv").write_text("my own data\n")
+    assert main(["biaxial", "--points", "3", "--out", str(mine)]) == 2
+    assert "not written by mvfem" in capsys.readouterr().err
+    assert (mine / "biaxial.csv").read_text() == "my own data\n"
