@@ -16,7 +16,8 @@ import ufl
 
 from .kinematics import Membrane
 
-__all__ = ["svk", "may_newman_yin", "holzapfel", "neo_hookean", "LAWS", "law_parameters", "uses_fibre"]
+__all__ = ["svk", "may_newman_yin", "holzapfel", "neo_hookean", "LAWS", "law_parameters", "uses_fibre",
+           "is_exponential", "exponent"]
 
 
 def svk(m: Membrane, E, nu) -> ufl.core.expr.Expr:
@@ -34,24 +35,43 @@ def svk(m: Membrane, E, nu) -> ufl.core.expr.Expr:
     return E / (2 * (1 - nu**2)) * ((1 - nu) * ufl.tr(Em * Em) + nu * ufl.tr(Em) ** 2)
 
 
-def may_newman_yin(m: Membrane, c0, c1, c2) -> ufl.core.expr.Expr:
+def _capped(Q, max_exponent):
+    return Q if max_exponent is None else ufl.min_value(Q, max_exponent)
+
+
+def may_newman_yin(m: Membrane, c0, c1, c2, max_exponent=None) -> ufl.core.expr.Expr:
     """May-Newman-Yin transversely isotropic exponential law.
 
     .. math::
         W = c_0\\left[\\exp\\left(c_1 (I_1 - 3)^2 + c_2 (\\lambda - 1)^4\\right) - 1\\right]
 
-    with ``lambda`` the fibre stretch (``c0`` in Pa).
+    with ``lambda`` the fibre stretch (``c0`` in Pa). With ``max_exponent`` the exponent is
+    capped there, so that a wild Newton iterate gives a huge but finite residual instead of an
+    overflow; states that reach the cap are far outside the law's range and are flagged.
     """
-    return c0 * (ufl.exp(c1 * (m.I1 - 3) ** 2 + c2 * (m.fibre_stretch - 1) ** 4) - 1)
+    Q = c1 * (m.I1 - 3) ** 2 + c2 * (m.fibre_stretch - 1) ** 4
+    return c0 * (ufl.exp(_capped(Q, max_exponent)) - 1)
 
 
-def holzapfel(m: Membrane, c0, c1, c2) -> ufl.core.expr.Expr:
+def holzapfel(m: Membrane, c0, c1, c2, max_exponent=None) -> ufl.core.expr.Expr:
     """Holzapfel-type exponential law (as used for mitral leaflets by Prot et al.).
 
     .. math::
         W = c_0\\left[\\exp\\left(c_1 (I_1 - 3)^2 + c_2 (\\lambda^2 - 1)^2\\right) - 1\\right]
+
+    ``max_exponent`` as for :func:`may_newman_yin`.
     """
-    return c0 * (ufl.exp(c1 * (m.I1 - 3) ** 2 + c2 * (m.I4 - 1) ** 2) - 1)
+    Q = c1 * (m.I1 - 3) ** 2 + c2 * (m.I4 - 1) ** 2
+    return c0 * (ufl.exp(_capped(Q, max_exponent)) - 1)
+
+
+def exponent(law: str, m: Membrane, c0, c1, c2) -> ufl.core.expr.Expr:
+    """The exponent Q of an exponential law (to check a state against the cap)."""
+    if law == "mny":
+        return c1 * (m.I1 - 3) ** 2 + c2 * (m.fibre_stretch - 1) ** 4
+    if law == "holzapfel":
+        return c1 * (m.I1 - 3) ** 2 + c2 * (m.I4 - 1) ** 2
+    raise ValueError(f"{law!r} has no exponent")
 
 
 def neo_hookean(m: Membrane, mu) -> ufl.core.expr.Expr:
@@ -82,6 +102,11 @@ _PARAMETERS = {
 def law_parameters(law: str) -> tuple[str, ...]:
     """Names of the parameters of ``law``, in the order the energy function takes them."""
     return _PARAMETERS[law]
+
+
+def is_exponential(law: str) -> bool:
+    """Whether ``law`` is a Fung-type exponential law (takes ``max_exponent``)."""
+    return law in ("mny", "holzapfel")
 
 
 def uses_fibre(law: str) -> bool:

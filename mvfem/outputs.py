@@ -37,3 +37,224 @@ def write_json(data: dict, path: str | os.PathLike) -> None:
     tmp = path.with_name(path.name + ".part")
     tmp.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
     os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------- run outputs
+PERCENTILES = (5, 25, 50, 75, 95)
+_PNAMES = ("p5", "p25", "median", "p75", "p95")
+
+
+def _percentiles(values) -> dict:
+    import numpy as np
+
+    if len(values) == 0:
+        return {k: None for k in _PNAMES}
+    return {k: float(v) for k, v in zip(_PNAMES, np.percentile(values, PERCENTILES))}
+
+
+def direction_fields(model) -> dict:
+    """UFL expressions of the per-facet output quantities (conventions of DESIGN.md).
+
+    Radial Almansi strain ``(1 - 1/lambda_r^2)/2`` with ``lambda_r`` the stretch of the
+    reference radial direction; radial Cauchy stress ``r.sigma.r`` with ``r`` the deformed radial
+    direction; the same for the circumferential direction.
+    """
+    import ufl
+
+    from mvfem.forms import fibre_components, fibre_stretch_squared
+
+    k = model.kin
+    out = {}
+    for name, d0 in (("radial", model.radial), ("circumferential", model.circumferential)):
+        A = fibre_components(k.G, k.J0, d0)
+        lam2 = fibre_stretch_squared(A, k.G, k.g)
+        out[f"{name}_almansi_strain"] = (1 - 1 / lam2) / 2
+        d = k.J * A
+        out[f"{name}_direction"] = d / ufl.sqrt(ufl.dot(d, d))
+    return out
+
+
+def cell_fields(model) -> dict:
+    """DG0 functions of strains and stresses per cell, and the region label of each cell.
+
+    The stress tensor and the directions are evaluated as separate DG0 fields and contracted
+    here: FFCx 0.5 emits duplicate declarations for some expressions that combine both.
+    """
+    import numpy as np
+    from dolfinx import fem
+
+    from mvfem.fields import cell_function
+
+    msh = model.mesh
+    exprs = direction_fields(model)
+    V0 = fem.FunctionSpace(msh, ("DG", 0))
+    blocks = V0.dofmap.list.array  # DG0 dof of each local cell (owned and ghost)
+    fields = {}
+    dirs = {}
+    for name in ("radial", "circumferential"):
+        fields[f"{name}_almansi_strain"] = cell_function(exprs[f"{name}_almansi_strain"], msh,
+                                                         name=f"{name}_almansi_strain")
+        fields[f"{name}_cauchy_stress_Pa"] = fem.Function(V0, name=f"{name}_cauchy_stress_Pa")
+        f = cell_function(exprs[f"{name}_direction"], msh, (3,))
+        dirs[name] = f.x.array.reshape(-1, 3)[f.function_space.dofmap.list.array]
+    label = fem.Function(V0, name="region")
+    n_cells = len(blocks)
+    for i, region in enumerate(model.regions):
+        if region.tag is None:
+            cells = np.arange(n_cells, dtype=np.int32)
+        else:
+            cells = model.surface.cell_tags.find(region.tag)
+        fs = cell_function(model.cauchy(region), msh, (3, 3))
+        sigma = fs.x.array.reshape(-1, 9)[fs.function_space.dofmap.list.array].reshape(-1, 3, 3)
+        for name in ("radial", "circumferential"):
+            d = dirs[name][cells]
+            values = np.einsum("ci,cij,cj->c", d, sigma[cells], d)
+            fields[f"{name}_cauchy_stress_Pa"].x.array[blocks[cells]] = values
+        label.x.array[blocks[cells]] = i
+    fields["region"] = label
+    return fields
+
+
+def _gather_region_values(model, fields) -> dict:
+    """Per-region arrays (on rank 0) of owned-cell values: strain, stress, area."""
+    import numpy as np
+    import ufl
+
+    from mvfem.fields import cell_values
+
+    msh = model.mesh
+    n = msh.topology.index_map(2).size_local
+    blocks = fields["region"].function_space.dofmap.list.array[:n]
+    # reference area of each (affine) triangle; CellVolume does not compile in Expressions on 0.5
+    area = cell_values(ufl.sqrt(ufl.det(model.kin.G)) / 2, msh)
+    label = fields["region"].x.array[blocks]
+    strain = fields["radial_almansi_strain"].x.array[blocks]
+    stress = fields["radial_cauchy_stress_Pa"].x.array[blocks]
+    out = {}
+    for i, region in enumerate(model.regions):
+        sel = label == i
+        parts = msh.comm.gather((strain[sel], stress[sel], area[sel]), root=0)
+        if msh.comm.rank == 0:
+            out[region.label] = tuple(np.concatenate([p[j] for p in parts]) for j in range(3))
+    return out
+
+
+def probe_displacements(model, probes: list) -> dict:
+    """Displacement at each probe point (reference coordinates, on or near the surface)."""
+    import numpy as np
+    from dolfinx import geometry
+
+    msh = model.mesh
+    if not probes:
+        return {}
+    pts = np.array([p["point"] for p in probes], dtype=float)
+    tree = geometry.BoundingBoxTree(msh, msh.topology.dim)
+    cand = geometry.compute_collisions(tree, pts)
+    hits = geometry.compute_colliding_cells(msh, cand, pts)
+    local = np.full((len(pts), 3), np.nan)
+    for i in range(len(pts)):
+        cells = hits.links(i)
+        n_owned = msh.topology.index_map(2).size_local
+        cells = cells[cells < n_owned]
+        if len(cells):
+            local[i] = model.u.eval(pts[i], cells[:1])
+    everything = msh.comm.allgather(local)
+    result = {}
+    for i, p in enumerate(probes):
+        vals = [a[i] for a in everything if np.all(np.isfinite(a[i]))]
+        result[p["name"]] = {"displacement_mm": [float(c) for c in vals[0]] if vals else None}
+        if not vals and msh.comm.rank == 0:
+            import logging
+
+            logging.getLogger(__name__).warning(
+                f"probe {p['name']!r}: point {p['point']} is not on the surface")
+    return result
+
+
+def reference_step_time(model, problem) -> float:
+    """Seconds for one assembly and one LU factorisation of the tangent at the current state."""
+    import time
+
+    from dolfinx.fem import petsc as fpetsc
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    comm = model.comm
+    comm.Barrier()
+    t0 = time.perf_counter()
+    A = fpetsc.assemble_matrix(problem.a, bcs=problem.bcs)
+    A.assemble()
+    ksp = PETSc.KSP().create(comm)
+    ksp.setOperators(A)
+    ksp.setType("preonly")
+    pc = ksp.getPC()
+    pc.setType("lu")
+    pc.setFactorSolverType("mumps")
+    ksp.setUp()
+    comm.Barrier()
+    dt = time.perf_counter() - t0
+    ksp.destroy()
+    A.destroy()
+    return comm.allreduce(dt, op=MPI.MAX)
+
+
+def write_xdmf(model, fields: dict, path) -> None:
+    """Mesh, displacement (P1) and the per-cell fields in one XDMF file ParaView opens."""
+    from dolfinx import fem
+    from dolfinx.io import XDMFFile
+
+    u = model.u
+    if model.V.ufl_element().degree() != 1:
+        V1 = fem.VectorFunctionSpace(model.mesh, ("Lagrange", 1))
+        u1 = fem.Function(V1, name="displacement")
+        u1.interpolate(u)
+        u = u1
+    with XDMFFile(model.comm, str(path), "w") as f:
+        f.write_mesh(model.mesh)
+        f.write_function(u)
+        for fn in fields.values():
+            f.write_function(fn)
+
+
+def write_outputs(result, problem, write: bool = True) -> None:
+    """Complete ``result.summary`` (displacement, regions, probes, timing) and write files."""
+    import time
+
+    import numpy as np
+    from mpi4py import MPI
+
+    model = result.model
+    comm = model.comm
+    s = result.summary
+    t0 = time.perf_counter()
+    nloc = model.V.dofmap.index_map.size_local * 3
+    umax = np.linalg.norm(model.u.x.array[:nloc].reshape(-1, 3), axis=1).max(initial=0.0)
+    s["max_displacement_mm"] = comm.allreduce(float(umax), op=MPI.MAX)
+    s["max_penetration_mm"] = None  # no contact in this scene
+    s["probes"] = probe_displacements(model, model.scene["output"]["probes"])
+    fields = cell_fields(model)
+    per_region = _gather_region_values(model, fields)
+    regions = {}
+    if comm.rank == 0:
+        for region in model.regions:
+            strain, stress, area = per_region[region.label]
+            regions[region.label] = {
+                "law": region.law, "set": region.set,
+                "area_mm2": float(area.sum()),
+                "radial_almansi_strain": _percentiles(strain),
+                "radial_cauchy_stress_Pa": _percentiles(stress),
+            }
+    s["regions"] = comm.bcast(regions, root=0)
+    timing = s["timing"]
+    timing["reference_step_s"] = reference_step_time(model, problem)
+    if write:
+        if model.scene["output"]["xdmf"]:
+            write_xdmf(model, fields, result.out / "fields.xdmf")
+    timing["output_s"] = time.perf_counter() - t0
+    s["wall_time_s"] += timing["output_s"]
+    timing["other_s"] = max(s["wall_time_s"] - timing["assembly_s"] - timing["linear_solve_s"]
+                            - timing["contact_s"], 0.0)
+    result.fields = fields
+    if write and comm.rank == 0:
+        write_json(s, result.out / "summary.json")
+    comm.Barrier()

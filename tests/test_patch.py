@@ -60,7 +60,11 @@ def _patch_solve(comm, law, params, strains, n=6, fibre_angle=0.6, seed=1):
         D = deformation(t) - np.eye(3)
         u_bc.interpolate(lambda x: D @ x)
 
-    problem = SNESProblem(F, u, [bc], prefix=f"patch_{law}_")
+    # absolute tolerance on the force scale stress x thickness x side (round-off ~1e-16 of it)
+    stress = max(np.abs(closed_form(law, params, np.array(1 + strains[0]),
+                                    np.array(1 + strains[1]))))
+    problem = SNESProblem(F, u, [bc], prefix=f"patch_{law}_",
+                          options={"snes_atol": 1e-11 * stress * h0 * 10.0, "snes_rtol": 1e-12})
     t0 = 0.25
     set_load(t0)
     D0 = deformation(t0) - np.eye(3)

@@ -1,0 +1,255 @@
+"""From a scene to the discrete problem: mesh, unknown, and the terms the scene asks for.
+
+Only what a scene needs is built: a region energy per ``[[region]]``, a follower (or dead)
+pressure, and a clamp on the boundary when there is one. The start-up stabiliser is not a form:
+the solver adds it as a lumped diagonal (see :func:`lumped_mass`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import ufl
+from dolfinx import fem, mesh as dmesh
+from mpi4py import MPI
+
+from mvfem.errors import InputError
+from mvfem.forms import LAWS, Membrane, cauchy_stress, is_exponential, membrane, unit_normal
+from mvfem.forms.pressure import dead_pressure, follower_pressure
+from mvfem.scene import Scene
+
+__all__ = ["Model", "Region", "build_model", "build_mesh", "default_size", "lumped_mass"]
+
+log = logging.getLogger(__name__)
+
+#: cap on the exponent of the Fung laws in simulations: e^200 c0 is ~1e89 Pa, far beyond any
+#: tissue state, so only wild Newton iterates meet it (and a final state that does is rejected)
+MAX_EXPONENT = 200.0
+
+
+@dataclass
+class Region:
+    """One material region: its cells, law, parameters (Constants) and energy density."""
+
+    label: str
+    tag: int | None
+    law: str
+    set: str
+    constants: dict
+    thickness: fem.Constant
+    W: ufl.core.expr.Expr
+    dx: ufl.Measure
+
+
+@dataclass
+class Model:
+    """The discrete membrane problem of a scene.
+
+    Attributes:
+        pressure: the applied pressure (Pa), a Constant the load stepper scales.
+        stabiliser_scale: weight (Pa/mm) of the start-up proximal term ``k M (u - u_prev)``.
+        residual: the residual form of the problem as posed (internal - pressure).
+        load_form: the pressure term alone at the current pressure (its norm scales tolerances).
+    """
+
+    scene: Scene
+    surface: object
+    mesh: dmesh.Mesh
+    V: fem.FunctionSpace
+    u: fem.Function
+    kin: Membrane
+    regions: list[Region]
+    fibre: ufl.core.expr.Expr
+    radial: ufl.core.expr.Expr
+    circumferential: ufl.core.expr.Expr
+    pressure: fem.Constant
+    p_target: float
+    stabiliser_scale: float
+    energy: ufl.core.expr.Expr
+    residual: ufl.core.expr.Expr
+    load_form: ufl.core.expr.Expr
+    bcs: list
+    quadrature_degree: int
+    length_scale: float
+    info: dict = field(default_factory=dict)
+
+    @property
+    def comm(self):
+        return self.mesh.comm
+
+    def cauchy(self, region: Region) -> ufl.core.expr.Expr:
+        """Cauchy stress (3x3) of a region's law."""
+        return cauchy_stress(region.W, self.kin)
+
+
+def default_size(m: dict) -> float:
+    """A target edge length giving a few thousand triangles for the generated shapes."""
+    gen = m["generator"]
+    if gen == "disk":
+        return m["radius"] / 20
+    if gen == "square":
+        return m["side"] / 30
+    if gen == "sphere":
+        return m["radius"] / 8
+    if gen == "tube":
+        return m["radius"] / 8
+    return 0.0
+
+
+def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
+    """The scene's surface mesh (a :class:`mvfem.meshes.SurfaceMesh`)."""
+    from mvfem import meshes
+
+    m = scene["mesh"]
+    gen = m["generator"]
+    size = m["size"] or default_size(m)
+    if gen == "disk":
+        return meshes.disk(comm, radius=m["radius"], size=size)
+    if gen == "square":
+        return meshes.square(comm, side=m["side"], size=size, centred=True)
+    if gen == "sphere":
+        return meshes.sphere(comm, radius=m["radius"], size=size)
+    if gen == "tube":
+        return meshes.tube(comm, radius=m["radius"], length=m["length"], size=size)
+    if gen == "file":
+        try:
+            raw = meshes.read_surface(m["file"])
+        except ValueError as e:
+            raise InputError(f"{scene.source}: mesh.file: {e}") from None
+        values = raw.cell_data.get("leaflet")
+        msh, tags = meshes.to_dolfinx(comm, raw, values)
+        names = {v: int(k) for k, v in (m["labels"] or {}).items()}
+        return meshes.SurfaceMesh(mesh=msh, cell_tags=tags, facet_tags=None, names=names,
+                                  info={"generator": "file", "file": m["file"]})
+    raise InputError(f"{scene.source}: mesh.generator: {gen!r} is not available")
+
+
+def _centre(msh, given) -> np.ndarray:
+    if given is not None:
+        return np.asarray(given, dtype=float)
+    n = msh.geometry.index_map().size_local
+    x = msh.geometry.x[:n]
+    s = msh.comm.allreduce(x.sum(axis=0), op=MPI.SUM)
+    c = msh.comm.allreduce(len(x), op=MPI.SUM)
+    return s / max(c, 1)
+
+
+def _tangent_unit(vec, n0):
+    t = vec - ufl.dot(vec, n0) * n0
+    return t / ufl.sqrt(ufl.dot(t, t))
+
+
+def _directions(msh, fibres: dict):
+    """(fibre, radial, circumferential) unit tangent fields of the reference surface (UFL)."""
+    x = ufl.SpatialCoordinate(msh)
+    n0 = unit_normal(ufl.Jacobian(msh))
+    axis = np.asarray(fibres["axis"], dtype=float)
+    axis = ufl.as_vector(axis / np.linalg.norm(axis))
+    c = ufl.as_vector(_centre(msh, fibres["centre"]))
+    d = x - c
+    circ = _tangent_unit(ufl.cross(axis, d), n0)
+    radial = _tangent_unit(d - ufl.dot(d, axis) * axis, n0)
+    direction = fibres["direction"]
+    if direction == "circumferential":
+        fibre = circ
+    elif direction == "radial":
+        fibre = radial
+    else:
+        fibre = _tangent_unit(ufl.as_vector(direction), n0)
+    return fibre, radial, circ
+
+
+def _region_cells(surface, label: str | None, n_regions: int, source: str):
+    """(tag value, measure subdomain) for a region label."""
+    if n_regions == 1 and label is None:
+        return None
+    names = getattr(surface, "names", {}) or {}
+    if label in names:
+        return int(names[label])
+    if n_regions == 1:
+        return None
+    raise InputError(f"{source}: region.label: {label!r} is not a label of the mesh "
+                     f"(labels: {', '.join(map(str, names)) or 'none'})")
+
+
+def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
+    """Compose the terms of ``scene`` on its mesh."""
+    surface = build_mesh(scene, comm)
+    msh = surface.mesh
+    s = scene["solver"]
+    degree = s["degree"]
+    q = s["quadrature_degree"] or (1 if degree == 1 else 2 * degree)
+    V = fem.VectorFunctionSpace(msh, ("Lagrange", degree))
+    u = fem.Function(V, name="displacement")
+    v = ufl.TestFunction(V)
+
+    fibre, radial, circ = _directions(msh, scene["fibres"])
+    kin = membrane(u, fibre)
+    meta = {"quadrature_degree": q}
+    tags = surface.cell_tags
+    regions = []
+    energy = 0
+    for r in scene["region"]:
+        tag = _region_cells(surface, r["label"], len(scene["region"]), scene.source)
+        dx = (ufl.Measure("dx", domain=msh, subdomain_data=tags, subdomain_id=tag, metadata=meta)
+              if tag is not None else ufl.Measure("dx", domain=msh, metadata=meta))
+        consts = {k: fem.Constant(msh, float(val)) for k, val in r["params"].items()}
+        h0 = fem.Constant(msh, float(r["thickness"]))
+        extra = {"max_exponent": MAX_EXPONENT} if is_exponential(r["law"]) else {}
+        W = LAWS[r["law"]](kin, *consts.values(), **extra)
+        regions.append(Region(r["label"] or "membrane", tag, r["law"], r.get("set", "custom"),
+                              consts, h0, W, dx))
+        energy = energy + h0 * W * dx
+
+    load = scene["load"]
+    pressure = fem.Constant(msh, 0.0)
+    dxp = ufl.Measure("dx", domain=msh, metadata=meta)
+    if load["follower"]:
+        p_term = follower_pressure(pressure, kin, v) * dxp
+    else:
+        p_term = dead_pressure(pressure, kin, v) * dxp
+
+    area = comm.allreduce(fem.assemble_scalar(fem.form(1.0 * dxp)), op=MPI.SUM)
+    L = float(np.sqrt(area))
+    internal = ufl.derivative(energy, u, v)
+    residual = internal - p_term
+
+    bcs = []
+    if scene["boundary"]["clamp"] == "boundary":
+        msh.topology.create_connectivity(1, 2)
+        facets = dmesh.exterior_facet_indices(msh.topology)
+        n_facets = comm.allreduce(len(facets), op=MPI.SUM)
+        if n_facets == 0:
+            raise InputError(f"{scene.source}: boundary.clamp: the mesh has no boundary to clamp "
+                             "(use clamp = \"none\")")
+        dofs = fem.locate_dofs_topological(V, 1, facets)
+        bcs.append(fem.dirichletbc(np.zeros(3, dtype=PETSc_scalar()), dofs, V))
+
+    p_target = float(load["pressure"])
+    stab_scale = s["stabilisation"] * max(abs(p_target), 1.0) / L
+    return Model(scene=scene, surface=surface, mesh=msh, V=V, u=u, kin=kin,
+                 regions=regions, fibre=fibre, radial=radial, circumferential=circ,
+                 pressure=pressure, p_target=p_target, stabiliser_scale=stab_scale,
+                 energy=energy, residual=residual, load_form=p_term, bcs=bcs,
+                 quadrature_degree=q, length_scale=L, info={"area_mm2": area})
+
+
+def lumped_mass(model: Model):
+    """Nodal area per displacement dof (PETSc Vec), zero on Dirichlet dofs."""
+    from dolfinx.fem import petsc as fpetsc
+    from petsc4py import PETSc
+
+    v = ufl.TestFunction(model.V)
+    one = ufl.as_vector((1.0, 1.0, 1.0))
+    m = fpetsc.assemble_vector(fem.form(ufl.dot(one, v) * ufl.dx(domain=model.mesh)))
+    m.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    fpetsc.set_bc(m, model.bcs, scale=0.0)
+    return m
+
+
+def PETSc_scalar():
+    from petsc4py import PETSc
+
+    return PETSc.ScalarType

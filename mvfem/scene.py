@@ -1,0 +1,405 @@
+"""Scene files (TOML): what to simulate, validated up front.
+
+A scene names the mesh, the regions with their laws, the fibres, the boundary, the load, the
+solver settings and the outputs (see CONTRACT.md). :func:`load_scene` reads a file or a dict,
+fills defaults, converts units (lengths to mm, pressures and moduli to Pa) and raises
+:class:`~mvfem.errors.InputError` with one line naming the file, the key and the problem.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from mvfem.errors import InputError
+from mvfem.units import LENGTH, PRESSURE, parse_quantity
+
+__all__ = ["Scene", "load_scene", "parse_set_option", "GENERATORS", "LAW_NAMES"]
+
+GENERATORS = ("disk", "square", "sphere", "tube", "file")
+LAW_NAMES = ("svk", "mny", "holzapfel", "neo-hookean")
+_MISSING = object()
+
+
+class _Bad(Exception):
+    """A validation failure at a key path; turned into an InputError with the file name."""
+
+    def __init__(self, path: str, message: str):
+        super().__init__(message)
+        self.path, self.message = path, message
+
+
+# --------------------------------------------------------------------------- value checkers
+def _number(path, v, minimum=None, positive=False, integer=False):
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise _Bad(path, f"expected a number, got {v!r}")
+    if integer and (not float(v).is_integer()):
+        raise _Bad(path, f"expected an integer, got {v!r}")
+    if not math.isfinite(v):
+        raise _Bad(path, f"must be finite, got {v!r}")
+    if positive and v <= 0:
+        raise _Bad(path, f"must be positive, got {v!r}")
+    if minimum is not None and v < minimum:
+        raise _Bad(path, f"must be at least {minimum}, got {v!r}")
+    return int(v) if integer else float(v)
+
+
+def _quantity(units, unit, positive=True, allow_zero=False):
+    def check(path, v):
+        try:
+            x = parse_quantity(v, units, unit)
+        except ValueError as e:
+            raise _Bad(path, str(e)) from None
+        if positive and (x < 0 or (x == 0 and not allow_zero)):
+            raise _Bad(path, f"must be {'non-negative' if allow_zero else 'positive'}, got {v!r}")
+        return x
+    return check
+
+
+def _choice(*options):
+    def check(path, v):
+        if not isinstance(v, str) or v.lower() not in options:
+            raise _Bad(path, f"expected one of {', '.join(options)}, got {v!r}")
+        return v.lower()
+    return check
+
+
+def _bool(path, v):
+    if not isinstance(v, bool):
+        raise _Bad(path, f"expected true or false, got {v!r}")
+    return v
+
+
+def _str(path, v):
+    if not isinstance(v, str) or not v.strip():
+        raise _Bad(path, f"expected a non-empty string, got {v!r}")
+    return v
+
+
+def _vector3(path, v):
+    if (not isinstance(v, (list, tuple)) or len(v) != 3
+            or any(isinstance(c, bool) or not isinstance(c, (int, float)) for c in v)):
+        raise _Bad(path, f"expected a vector of three numbers [x, y, z], got {v!r}")
+    if not all(math.isfinite(c) for c in v):
+        raise _Bad(path, f"must be finite, got {v!r}")
+    return [float(c) for c in v]
+
+
+def _pos(path, v):
+    return _number(path, v, positive=True)
+
+
+def _int(minimum):
+    return lambda path, v: _number(path, v, minimum=minimum, integer=True)
+
+
+_length = _quantity(LENGTH, "mm")
+_pressure_any = _quantity(PRESSURE, "Pa", positive=False)
+
+
+# --------------------------------------------------------------------------- schema
+# section -> key -> (checker, default); _MISSING = required
+_SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
+    "mesh": {
+        "generator": (_choice(*GENERATORS), _MISSING),
+        "radius": (_length, 10.0),
+        "side": (_length, 10.0),
+        "length": (_length, 20.0),
+        "size": (_length, None),
+        "file": (_str, None),
+        "labels": (None, None),  # checked in _check_mesh
+    },
+    "fibres": {
+        "direction": (None, "circumferential"),  # checked in _check_fibres
+        "axis": (_vector3, [0.0, 0.0, 1.0]),
+        "centre": (_vector3, None),
+    },
+    "boundary": {
+        "clamp": (_choice("boundary", "none"), "boundary"),
+    },
+    "load": {
+        "pressure": (_pressure_any, 16e3),
+        "follower": (_bool, True),
+    },
+    "solver": {
+        "degree": (_int(1), 1),
+        "quadrature_degree": (_int(1), None),
+        "tolerance": (_pos, 1e-8),  # equilibrium: ||R|| <= tolerance x ||pressure load||
+        "rtol": (_pos, 1e-9),  # final solve, relative to its first residual
+        "step_rtol": (_pos, 1e-6),  # intermediate load steps
+        "max_it": (_int(1), 25),
+        "linear_solver": (_choice("lu", "iterative"), "lu"),
+        "ramp": (_choice("cubic", "linear"), "cubic"),
+        "first_step": (_pos, 0.1),
+        "min_step": (_pos, 1e-5),
+        "max_steps": (_int(1), 400),
+        "stabilisation": (_pos, 0.1),
+        "petsc_options": (None, None),  # a table of PETSc options under the problem's prefix
+    },
+    "output": {
+        "probes": (None, []),  # checked in _check_probes
+        "xdmf": (_bool, True),
+    },
+}
+_REGION = {
+    "label": (_str, None),
+    "law": (_choice(*LAW_NAMES), _MISSING),
+    "params": (None, _MISSING),  # a set name or a table of law parameters
+    "thickness": (_length, None),
+    "leaflet": (_choice("anterior", "posterior"), None),
+}
+_TOP = ("title", "mesh", "region", "fibres", "boundary", "load", "solver", "output")
+
+
+def _check_table(path: str, table: Any, spec: dict) -> dict:
+    if not isinstance(table, dict):
+        raise _Bad(path, f"expected a table, got {table!r}")
+    unknown = sorted(set(table) - set(spec))
+    if unknown:
+        raise _Bad(f"{path}.{unknown[0]}" if path else unknown[0],
+                   f"unknown key (known: {', '.join(spec)})")
+    out = {}
+    for key, (check, default) in spec.items():
+        where = f"{path}.{key}" if path else key
+        if key in table:
+            out[key] = check(where, table[key]) if check else table[key]
+        elif default is _MISSING:
+            raise _Bad(where, "required key is missing")
+        else:
+            out[key] = copy.deepcopy(default)
+    return out
+
+
+def _check_region(path: str, region: dict) -> dict:
+    from mvfem.forms.materials import law_parameters
+    from mvfem.materials import get_set
+
+    r = _check_table(path, region, _REGION)
+    params = r["params"]
+    if isinstance(params, str):
+        leaflet = r["leaflet"] or (r["label"] if r["label"] in ("anterior", "posterior")
+                                   else "anterior")
+        try:
+            ps = get_set(params, leaflet)
+        except InputError as e:
+            raise _Bad(f"{path}.params", str(e)) from None
+        if ps.law != r["law"]:
+            raise _Bad(f"{path}.params", f"set {params!r} is for law {ps.law!r}, not {r['law']!r}")
+        r["params"] = dict(ps.params)
+        r["set"] = ps.name
+        if r["thickness"] is None:
+            r["thickness"] = ps.thickness_mm
+    elif isinstance(params, dict):
+        names = law_parameters(r["law"])
+        known = {k.lower(): v for k, v in params.items()}
+        extra = sorted(set(known) - {n.lower() for n in names})
+        if extra:
+            raise _Bad(f"{path}.params.{extra[0]}",
+                       f"not a parameter of law {r['law']!r} (expected {', '.join(names)})")
+        values = {}
+        for n in names:
+            if n.lower() not in known:
+                raise _Bad(f"{path}.params.{n}", f"required by law {r['law']!r}")
+            v = known[n.lower()]
+            if n in ("E", "mu", "c0"):
+                values[n] = _quantity(PRESSURE, "Pa")(f"{path}.params.{n}", v)
+            elif n == "nu":
+                values[n] = _number(f"{path}.params.{n}", v)
+                if not -1 < values[n] <= 0.5:
+                    raise _Bad(f"{path}.params.nu", f"must be in (-1, 0.5], got {v!r}")
+            else:
+                values[n] = _number(f"{path}.params.{n}", v, minimum=0.0)
+        r["params"] = values
+        r["set"] = "custom"
+    else:
+        raise _Bad(f"{path}.params", f"expected a set name or a table of parameters, got {params!r}")
+    if r["thickness"] is None:
+        raise _Bad(f"{path}.thickness", "required when params is a table")
+    return r
+
+
+def _check_mesh(mesh: dict, base_dir: Path) -> None:
+    if mesh["generator"] == "file":
+        if not mesh["file"]:
+            raise _Bad("mesh.file", "required when generator = \"file\"")
+        p = Path(mesh["file"])
+        p = p if p.is_absolute() else base_dir / p
+        if not p.is_file():
+            raise _Bad("mesh.file", f"no such file: {p}")
+        mesh["file"] = str(p)
+    labels = mesh["labels"]
+    if labels is not None:
+        if not isinstance(labels, dict) or not labels:
+            raise _Bad("mesh.labels", "expected a table such as { 1 = \"anterior\" }")
+        out = {}
+        for k, v in labels.items():
+            try:
+                key = int(k)
+            except (TypeError, ValueError):
+                raise _Bad(f"mesh.labels.{k}", "label keys must be integers") from None
+            out[key] = _str(f"mesh.labels.{k}", v)
+        mesh["labels"] = out
+
+
+def _check_fibres(fib: dict) -> None:
+    d = fib["direction"]
+    if isinstance(d, str):
+        fib["direction"] = _choice("circumferential", "radial")("fibres.direction", d)
+    else:
+        v = _vector3("fibres.direction", d)
+        if sum(c * c for c in v) == 0:
+            raise _Bad("fibres.direction", "must not be the zero vector")
+        fib["direction"] = v
+    if sum(c * c for c in fib["axis"]) == 0:
+        raise _Bad("fibres.axis", "must not be the zero vector")
+
+
+def _check_probes(probes) -> list:
+    if not isinstance(probes, list):
+        raise _Bad("output.probes", "expected a list of { name = ..., point = [x, y, z] }")
+    out, seen = [], set()
+    for i, p in enumerate(probes):
+        q = _check_table(f"output.probes[{i}]", p, {"name": (_str, _MISSING),
+                                                      "point": (_vector3, _MISSING)})
+        if q["name"] in seen:
+            raise _Bad(f"output.probes[{i}].name", f"duplicate probe name {q['name']!r}")
+        seen.add(q["name"])
+        out.append(q)
+    return out
+
+
+def _validate(raw: dict, base_dir: Path) -> dict:
+    unknown = sorted(set(raw) - set(_TOP))
+    if unknown:
+        raise _Bad(unknown[0], f"unknown key (known: {', '.join(_TOP)})")
+    data: dict[str, Any] = {"title": raw.get("title", "")}
+    if not isinstance(data["title"], str):
+        raise _Bad("title", f"expected a string, got {data['title']!r}")
+    if "mesh" not in raw:
+        raise _Bad("mesh", "required section is missing")
+    for section, spec in _SCHEMA.items():
+        data[section] = _check_table(section, raw.get(section, {}), spec)
+    _check_mesh(data["mesh"], base_dir)
+    _check_fibres(data["fibres"])
+    data["output"]["probes"] = _check_probes(data["output"]["probes"])
+    opts = data["solver"]["petsc_options"]
+    if opts is not None and not isinstance(opts, dict):
+        raise _Bad("solver.petsc_options", "expected a table of PETSc options")
+    regions = raw.get("region")
+    if regions is None:
+        raise _Bad("region", "at least one [[region]] is required")
+    if isinstance(regions, dict):
+        regions = [regions]
+    if not isinstance(regions, list) or not regions:
+        raise _Bad("region", "expected [[region]] tables")
+    data["region"] = [_check_region(f"region[{i}]", r) for i, r in enumerate(regions)]
+    labels = [r["label"] for r in data["region"]]
+    if len(labels) > 1 and (None in labels or len(set(labels)) != len(labels)):
+        raise _Bad("region", "with several regions each needs its own distinct label")
+    gen = data["mesh"]["generator"]
+    if gen in ("sphere",) and data["boundary"]["clamp"] == "boundary":
+        data["boundary"]["clamp"] = "none"  # a closed surface has no boundary to clamp
+    return data
+
+
+# --------------------------------------------------------------------------- Scene
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene.
+
+    Attributes:
+        data: the normalised scene (defaults filled, lengths in mm, pressures in Pa).
+        raw: the scene as written (used to apply changes and validate again).
+        source: the file it came from, or "<dict>".
+    """
+
+    data: dict
+    raw: dict = field(repr=False)
+    source: str = "<dict>"
+    base_dir: Path = field(default=Path("."), repr=False)
+
+    def __getitem__(self, key: str):
+        return self.data[key]
+
+    def with_changes(self, changes: dict[str, Any]) -> "Scene":
+        """A new scene with dotted keys replaced, e.g. ``{"load.pressure": "120 mmHg"}``.
+
+        ``region.0.thickness`` addresses the first region. Validated like a file.
+        """
+        raw = copy.deepcopy(self.raw)
+        for dotted, value in changes.items():
+            _assign(raw, dotted, value, self.source)
+        return _make(raw, self.source, self.base_dir)
+
+
+def _assign(raw: dict, dotted: str, value, source: str) -> None:
+    parts = dotted.split(".")
+    node = raw
+    for i, part in enumerate(parts[:-1]):
+        nxt = parts[i + 1]
+        if isinstance(node, list):
+            try:
+                node = node[int(part)]
+            except (ValueError, IndexError):
+                raise InputError(f"{source}: --set {dotted}: no item {part!r}") from None
+            continue
+        if part == "region" and isinstance(node.get(part), dict):
+            node[part] = [node[part]]
+        if part not in node:
+            node[part] = [] if nxt.isdigit() else {}
+        node = node[part]
+    last = parts[-1]
+    if isinstance(node, list):
+        try:
+            node[int(last)] = value
+        except (ValueError, IndexError):
+            raise InputError(f"{source}: --set {dotted}: no item {last!r}") from None
+    elif isinstance(node, dict):
+        node[last] = value
+    else:
+        raise InputError(f"{source}: --set {dotted}: {'.'.join(parts[:-1])} is not a table")
+
+
+def _make(raw: dict, source: str, base_dir: Path) -> Scene:
+    try:
+        data = _validate(raw, base_dir)
+    except _Bad as e:
+        raise InputError(f"{source}: {e.path}: {e.message}") from None
+    return Scene(data=data, raw=raw, source=source, base_dir=base_dir)
+
+
+def load_scene(scene: str | Path | dict | Scene) -> Scene:
+    """Read and validate a scene from a TOML file, a dict, or return a Scene as it is."""
+    if isinstance(scene, Scene):
+        return scene
+    if isinstance(scene, dict):
+        return _make(copy.deepcopy(scene), "<dict>", Path("."))
+    path = Path(scene)
+    if not path.is_file():
+        raise InputError(f"{path}: no such scene file")
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"{path}: not valid TOML: {e}") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file") from None
+    return _make(raw, str(path), path.resolve().parent)
+
+
+def parse_set_option(text: str) -> tuple[str, Any]:
+    """``key.path=value`` from the command line; the value is read as TOML when it parses."""
+    if "=" not in text:
+        raise InputError(f"--set {text}: expected key.path=value")
+    key, value = text.split("=", 1)
+    key = key.strip()
+    if not key:
+        raise InputError(f"--set {text}: empty key")
+    try:
+        parsed = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        parsed = value.strip()
+    return key, parsed

@@ -1,0 +1,268 @@
+"""Run a scene: build the model, ramp the pressure with SNES, write the outputs.
+
+Start-up of laws with zero stiffness at the stress-free state: every load step is solved with
+the proximal term ``k (u - u_prev)`` (``u_prev`` the last converged state), which keeps the
+tangent regular on a flat or slack membrane. At full load ``k`` is reduced tenfold per solve
+and finally set to zero: the reported state is an equilibrium of the problem as posed, and
+``summary.json`` gives its residual relative to the pressure load.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+
+from mvfem.errors import SolverError
+from mvfem.model import MAX_EXPONENT, Model, build_model, lumped_mass
+from mvfem.scene import Scene, load_scene
+from mvfem.solver import LoadStepper, SNESProblem, SolveInfo, StepRecord
+
+__all__ = ["solve", "Result"]
+
+log = logging.getLogger(__name__)
+_ids = itertools.count()
+
+
+@dataclass
+class Result:
+    """What :func:`solve` returns.
+
+    Attributes:
+        summary: the content of summary.json.
+        u: the displacement (dolfinx Function) of the last converged state.
+        model: the composed problem (mesh, kinematics, regions).
+        out: the output directory, or None.
+    """
+
+    summary: dict
+    u: object
+    model: Model
+    out: Path | None
+    fields: dict | None = None
+
+    @property
+    def converged(self) -> bool:
+        return bool(self.summary["converged"])
+
+
+def _petsc_options(model: Model, load_norm: float) -> dict:
+    s = model.scene["solver"]
+    # absolute tolerance: the equilibrium tolerance relative to the full pressure load
+    opts = {"snes_rtol": s["rtol"], "snes_atol": s["tolerance"] * load_norm,
+            "snes_max_it": s["max_it"]}
+    if s["linear_solver"] == "iterative":
+        opts.update({"ksp_type": "gmres", "pc_type": "gamg", "ksp_rtol": 1e-10,
+                     "ksp_max_it": 2000, "pc_factor_mat_solver_type": None})
+    for k, v in (s["petsc_options"] or {}).items():
+        opts[k] = v
+    return {k: v for k, v in opts.items() if v is not None}
+
+
+#: load parameter t in [0, 1] -> fraction of the pressure. A membrane's deflection grows like
+#: p^(1/3) from the flat state, so the cubic ramp takes steps of similar displacement.
+_RAMPS = {"linear": lambda t: t, "cubic": lambda t: t**3}
+
+
+class _Progress:
+    """One line per load step on rank 0, for runs longer than a couple of seconds."""
+
+    def __init__(self, model: Model, enabled: bool):
+        self.model, self.enabled, self.t0 = model, enabled, time.perf_counter()
+        self.quiet_until = 2.0
+
+    def __call__(self, rec: StepRecord, stepper: LoadStepper) -> None:
+        el = time.perf_counter() - self.t0
+        p = _RAMPS[self.model.scene["solver"]["ramp"]](rec.load) * self.model.p_target
+        msg = (f"  step {len(stepper.history):3d}  p = {p / 1e3:8.3f} kPa"
+               f"  {'ok  ' if rec.converged else 'FAIL'} {rec.iterations:2d} it  {rec.reason:<26s}"
+               f" {el:6.1f} s")
+        if not rec.converged:
+            log.info(msg + "  (cut back)")
+        elif self.enabled and el > self.quiet_until:
+            log.info(msg)
+        else:
+            log.debug(msg)
+
+
+def _equilibrium_check(model: Model, problem: SNESProblem | None) -> tuple[float, float]:
+    """(||R(u)||, ||f_p||): residual of the problem as posed (no stabiliser), free dofs only."""
+    from dolfinx import fem
+    from dolfinx.fem import petsc as fpetsc
+    from petsc4py import PETSc
+
+    def norm(form) -> float:
+        b = fpetsc.assemble_vector(fem.form(form))
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        fpetsc.set_bc(b, model.bcs, scale=0.0)
+        n = b.norm()
+        b.destroy()
+        return n
+
+    return norm(model.residual), norm(model.load_form)
+
+
+def _max_exponent(model: Model) -> float:
+    """Largest exponent of the Fung laws over all cells (0 when there is none)."""
+    from mvfem.fields import cell_values
+    from mvfem.forms import exponent, is_exponential
+
+    q = 0.0
+    for r in model.regions:
+        if is_exponential(r.law):
+            vals = cell_values(exponent(r.law, model.kin, *r.constants.values()), model.mesh)
+            q = max(q, float(vals.max(initial=0.0)))
+    return model.comm.allreduce(q, op=MPI.MAX)
+
+
+def _remove_stabiliser(model, problem, stepper, step_solve, get_state, set_state, last_converged,
+                       n_owned) -> tuple[bool, str]:
+    """Solve the problem as posed (no proximal term) at full load, from the stabilised state.
+
+    First directly; if that fails, through proximal solves with k reduced tenfold each time,
+    each centred on the previous one, then k = 0. Returns (success, reason of a failure).
+    """
+    def attempt(k: float) -> SolveInfo:
+        problem.set_proximal(k)
+        last_converged[0] = model.u.x.array[:n_owned].copy()
+        info = step_solve()
+        stepper.history.append(StepRecord(1.0, info.converged, info.iterations, info.reason))
+        return info
+
+    saved = get_state()
+    info = attempt(0.0)
+    if info.converged:
+        return True, ""
+    set_state(saved)
+    k = model.stabiliser_scale
+    for _ in range(8):
+        k /= 10
+        info = attempt(k)
+        if not info.converged:
+            set_state(saved)
+            return False, f"removing the start-up stabiliser failed at k = {k:.3g}: {info.reason}"
+        saved = get_state()
+    info = attempt(0.0)
+    if not info.converged:
+        set_state(saved)
+        return False, f"final solve without stabiliser failed: {info.reason}"
+    return True, ""
+
+
+def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COMM_WORLD,
+          progress: bool = True, write: bool = True) -> Result:
+    """Solve ``scene`` (collective on ``comm``); write outputs to ``out`` when given.
+
+    Raises:
+        InputError: the scene is invalid (nothing is written).
+    Returns:
+        A :class:`Result`; ``result.converged`` is False when the solver stopped short, in which
+        case the last converged state is what the outputs show.
+    """
+    from mvfem.outputs import prepare_out, write_outputs
+
+    t_start = time.perf_counter()
+    scene = load_scene(scene)
+    if out is not None and comm.rank == 0:
+        prepare_out(out)
+    model = build_model(scene, comm)
+    t_build = time.perf_counter() - t_start
+    s = scene["solver"]
+    model.pressure.value = model.p_target
+    _, load_norm = _equilibrium_check(model, None)
+    model.pressure.value = 0.0
+    problem = SNESProblem(model.residual, model.u, model.bcs, prefix=f"mvfem{next(_ids)}_",
+                          options=_petsc_options(model, load_norm))
+    u = model.u
+    n_owned = u.vector.getLocalSize()
+    centre = u.vector.copy()
+    problem.set_proximal(model.stabiliser_scale, weights=lumped_mass(model), centre=centre)
+    ramp = _RAMPS[s["ramp"]]
+    last_converged = [u.x.array[:n_owned].copy()]  # the proximal centre
+
+    def set_load(t: float) -> None:
+        model.pressure.value = ramp(t) * model.p_target
+
+    def get_state() -> np.ndarray:
+        return u.x.array.copy()
+
+    def set_state(a: np.ndarray) -> None:
+        u.x.array[:] = a
+        u.x.scatter_forward()
+
+    def step_solve() -> SolveInfo:
+        centre.array[:] = last_converged[0]
+        if not np.isfinite(problem.residual_norm()):  # a predictor that overshoots into overflow
+            u.x.array[:n_owned] = last_converged[0]
+            u.x.scatter_forward()
+        return problem.solve()
+
+    progress_line = _Progress(model, progress)
+
+    def on_step(rec: StepRecord, stepper: LoadStepper) -> None:
+        if rec.converged:
+            last_converged[0] = u.x.array[:n_owned].copy()
+        progress_line(rec, stepper)
+
+    # intermediate states need not be tight: the final state is (see _remove_stabiliser)
+    tight_atol = s["tolerance"] * load_norm
+    problem.set_tolerances(rtol=s["step_rtol"], atol=max(tight_atol, s["step_rtol"] * load_norm))
+    stepper = LoadStepper(set_load, step_solve, get_state, set_state,
+                          first_step=s["first_step"], min_step=s["min_step"],
+                          max_steps=s["max_steps"], on_step=on_step)
+    if comm.rank == 0 and progress:
+        log.info(f"{scene.data['title'] or scene.source}: {model.V.dofmap.index_map.size_global * 3} "
+                 f"dofs, pressure {model.p_target / 1e3:g} kPa")
+    reached, t_reached = stepper.run(1.0)
+    t_reached = ramp(t_reached)
+    stop_reason = "" if reached else "the load step fell below its minimum"
+    final_ok = False
+    if reached:
+        problem.set_tolerances(rtol=s["rtol"], atol=tight_atol)
+        final_ok, stop_reason = _remove_stabiliser(model, problem, stepper, step_solve, get_state,
+                                                   set_state, last_converged, n_owned)
+    problem.set_proximal(0.0)
+    r_norm, f_norm = _equilibrium_check(model, problem)
+    rel = r_norm / f_norm if f_norm > 0 else r_norm
+    q_max = _max_exponent(model)
+    if final_ok and q_max >= MAX_EXPONENT:
+        final_ok, stop_reason = False, (f"the exponential law reached its exponent cap "
+                                        f"({q_max:.0f}): no physical equilibrium")
+    converged = bool(final_ok and np.isfinite(rel) and rel <= 10 * s["tolerance"])
+    wall = time.perf_counter() - t_start
+    timing = {"assembly_s": problem.assembly_s, "linear_solve_s": problem.solve_s,
+              "contact_s": 0.0, "build_s": t_build}
+    if comm.rank == 0 and not converged:
+        log.warning(f"solver stopped short at p = {t_reached * model.p_target / 1e3:.4g} kPa "
+                    f"({stop_reason}); the last converged state is kept")
+    summary = {
+        "converged": converged,
+        "wall_time_s": wall,
+        "dofs": model.V.dofmap.index_map.size_global * model.V.dofmap.index_map_bs,
+        "cells": model.mesh.topology.index_map(2).size_global,
+        "load_steps": stepper.converged_steps,
+        "newton_iterations": stepper.newton_iterations,
+        "pressure_Pa": (model.p_target if converged else t_reached * model.p_target),
+        "target_pressure_Pa": model.p_target,
+        "equilibrium_residual": rel,
+        "stop_reason": stop_reason,
+        "timing": timing,
+    }
+    result = Result(summary=summary, u=u, model=model, out=Path(out) if out else None)
+    write_outputs(result, problem, write=write and out is not None)
+    problem.destroy()
+    return result
+
+
+def check_converged(result: Result) -> None:
+    """Raise :class:`SolverError` (exit code 3) for a run that stopped short."""
+    if not result.converged:
+        s = result.summary
+        raise SolverError(f"stopped at {s['pressure_Pa'] / 1e3:.4g} kPa of "
+                          f"{s['target_pressure_Pa'] / 1e3:.4g} kPa: {s['stop_reason']}; "
+                          f"last converged state written")

@@ -1,0 +1,51 @@
+"""Quantities with units in scene files: "16 kPa", "120 mmHg", "0.85 mm".
+
+Inside mvfem lengths are millimetres and pressures/moduli pascals.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+__all__ = ["PRESSURE", "LENGTH", "parse_quantity"]
+
+MMHG_PA = 101325.0 / 760.0
+
+PRESSURE = {"pa": 1.0, "kpa": 1e3, "mpa": 1e6, "gpa": 1e9, "mmhg": MMHG_PA, "bar": 1e5,
+            "n/mm2": 1e6, "n/mm^2": 1e6, "n/m2": 1.0, "n/m^2": 1.0}
+LENGTH = {"mm": 1.0, "cm": 10.0, "m": 1e3, "um": 1e-3, "\u00b5m": 1e-3}
+
+_NUMBER = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\s\d].*)?$")
+
+
+def parse_quantity(value, units: dict[str, float], default_unit: str) -> float:
+    """A number (already in the default unit) or a string "<number> <unit>" -> float.
+
+    Raises:
+        ValueError: with a message that names the accepted units.
+    """
+    if isinstance(value, bool):
+        raise ValueError(f"expected a number or a string with a unit, got {value!r}")
+    if isinstance(value, (int, float)):
+        x = float(value)
+    elif isinstance(value, str):
+        m = _NUMBER.match(value)
+        if not m:
+            raise ValueError(f"cannot read {value!r} as a quantity "
+                             f"(e.g. '1.5 {default_unit}'; units: {', '.join(_names(units))})")
+        unit = (m.group(2) or default_unit).strip()
+        factor = units.get(unit.lower())
+        if factor is None:
+            raise ValueError(f"unknown unit {unit!r} in {value!r} (units: {', '.join(_names(units))})")
+        x = float(m.group(1)) * factor
+    else:
+        raise ValueError(f"expected a number or a string with a unit, got {value!r}")
+    if not math.isfinite(x):
+        raise ValueError(f"{value!r} is not finite")
+    return x
+
+
+def _names(units: dict[str, float]) -> list[str]:
+    pretty = {"pa": "Pa", "kpa": "kPa", "mpa": "MPa", "gpa": "GPa", "mmhg": "mmHg", "bar": "bar"}
+    return [pretty.get(k, k) for k in units if "/" not in k]
