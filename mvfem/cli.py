@@ -35,10 +35,19 @@ def _setup_logging(verbose: bool) -> None:
         h.setFormatter(logging.Formatter("%(message)s"))
         root.addHandler(h)
     root.propagate = False
-    # FFCx calls logging.basicConfig() and its JIT build logs at INFO through the root logger
-    import ffcx  # noqa: F401
+    quiet_jit_logs()
 
-    logging.getLogger().setLevel(logging.WARNING)
+
+def quiet_jit_logs() -> None:
+    """Silence the INFO lines of FFCx JIT builds.
+
+    FFCx calls logging.basicConfig(), and distutils (cffi's compiler) sets the root logger's
+    level to INFO at each build; a level on the root *handlers* is left alone by both.
+    """
+    import ffcx  # noqa: F401  (installs its basicConfig handler first)
+
+    for h in logging.getLogger().handlers:
+        h.setLevel(logging.WARNING)
     for name in ("ffcx", "UFL", "ufl"):
         logging.getLogger(name).setLevel(logging.WARNING)
 
@@ -106,6 +115,26 @@ def _cmd_materials(args) -> int:
     return 0
 
 
+def _cmd_run(args) -> int:
+    from pathlib import Path
+
+    from mvfem.scene import load_scene, parse_set_option
+    from mvfem.solve import check_converged, solve
+
+    scene = load_scene(args.scene)
+    if args.set:
+        scene = scene.with_changes(dict(parse_set_option(t) for t in args.set))
+    out = Path(args.out) if args.out else Path("results") / Path(args.scene).stem
+    result = solve(scene, out=out, progress=True)
+    s = result.summary
+    _say(f"{'converged' if s['converged'] else 'NOT converged'}: {s['pressure_Pa'] / 1e3:g} kPa, "
+         f"{s['load_steps']} load steps, {s['newton_iterations']} Newton iterations, "
+         f"{s['wall_time_s']:.1f} s; max displacement {s['max_displacement_mm']:.4g} mm")
+    _say(f"wrote {out}/summary.json" + (f", {out}/fields.xdmf" if scene["output"]["xdmf"] else ""))
+    check_converged(result)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of `mvfem` (exposed for documentation and tests)."""
     p = _Parser(prog="mvfem", description="Mitral valve closure with hyperelastic membranes.")
@@ -121,6 +150,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--points", type=int, default=101, help="strain values per curve (101)")
     b.add_argument("--out", default="results/biaxial", help="output directory")
     b.set_defaults(func=_cmd_biaxial)
+
+    r = sub.add_parser("run", help="run one scene (TOML)")
+    r.add_argument("scene", help="scene file")
+    r.add_argument("--out", help="output directory (default: results/<scene name>)")
+    r.add_argument("--set", action="append", metavar="KEY.PATH=VALUE",
+                   help="change a scene value, e.g. --set load.pressure='\"120 mmHg\"' (repeatable)")
+    r.set_defaults(func=_cmd_run)
 
     m = sub.add_parser("materials", help="list parameter sets with law, values, thickness, source")
     m.add_argument("--leaflet", choices=("anterior", "posterior"))

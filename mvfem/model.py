@@ -91,7 +91,7 @@ def default_size(m: dict) -> float:
         return m["radius"] / 20
     if gen == "square":
         return m["side"] / 30
-    if gen == "sphere":
+    if gen in ("sphere", "octasphere"):
         return m["radius"] / 8
     if gen == "tube":
         return m["radius"] / 8
@@ -113,6 +113,8 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
         return meshes.sphere(comm, radius=m["radius"], size=size)
     if gen == "tube":
         return meshes.tube(comm, radius=m["radius"], length=m["length"], size=size)
+    if gen == "octasphere":
+        return meshes.octasphere(comm, radius=m["radius"], refinements=m["refinements"])
     if gen == "file":
         try:
             raw = meshes.read_surface(m["file"])
@@ -226,6 +228,8 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
                              "(use clamp = \"none\")")
         dofs = fem.locate_dofs_topological(V, 1, facets)
         bcs.append(fem.dirichletbc(np.zeros(3, dtype=PETSc_scalar()), dofs, V))
+    elif scene["boundary"]["clamp"] == "rigid":
+        bcs += _rigid_pins(V, scene)
 
     p_target = float(load["pressure"])
     stab_scale = s["stabilisation"] * max(abs(p_target), 1.0) / L
@@ -234,6 +238,37 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
                  pressure=pressure, p_target=p_target, stabiliser_scale=stab_scale,
                  energy=energy, residual=residual, load_form=p_term, bcs=bcs,
                  quadrature_degree=q, length_scale=L, info={"area_mm2": area})
+
+
+def _rigid_pins(V, scene: Scene) -> list:
+    """Six constraints that remove the rigid-body motion of a closed surface about its centre c.
+
+    With R the largest distance of a node from c along each axis, the nodes at c +- R e_z keep
+    ux = uy = 0 and the node at c + R e_x keeps uy = uz = 0: translations (x, y by the poles,
+    z by the x-node), rotations about x and y (the poles) and about z (the x-node). A uniform
+    inflation about c satisfies all six, so they do not change its answer. The nodes must exist
+    (an octasphere has them); otherwise the scene is refused.
+    """
+    msh = V.mesh
+    comm = msh.comm
+    x = msh.geometry.x
+    c = _centre(msh, scene["fibres"]["centre"])
+    d = x - c
+    R = comm.allreduce(float(np.abs(d).max(initial=0.0)), op=MPI.MAX)
+    bcs = []
+    for point, comps in (((0, 0, R), (0, 1)), ((0, 0, -R), (0, 1)), ((R, 0, 0), (1, 2))):
+        near = np.flatnonzero(np.linalg.norm(d - np.array(point), axis=1) < 1e-8 * R)
+        if comm.allreduce(len(near), op=MPI.SUM) == 0:
+            raise InputError(f"{scene.source}: boundary.clamp: \"rigid\" needs mesh nodes at the "
+                             f"centre +- R e_z and + R e_x (R = {R:.4g} mm), as an octasphere has")
+        for comp in comps:
+            Vc = V.sub(comp)
+            dofs = fem.locate_dofs_geometrical(
+                (Vc, Vc.collapse()[0]),
+                lambda y, p=np.array(point) + c: np.linalg.norm(y.T - p, axis=1) < 1e-8 * R)
+            zero = fem.Function(Vc.collapse()[0])
+            bcs.append(fem.dirichletbc(zero, dofs, Vc))
+    return bcs
 
 
 def lumped_mass(model: Model):

@@ -20,7 +20,7 @@ from mvfem.units import LENGTH, PRESSURE, parse_quantity
 
 __all__ = ["Scene", "load_scene", "parse_set_option", "GENERATORS", "LAW_NAMES"]
 
-GENERATORS = ("disk", "square", "sphere", "tube", "file")
+GENERATORS = ("disk", "square", "sphere", "octasphere", "tube", "file")
 LAW_NAMES = ("svk", "mny", "holzapfel", "neo-hookean")
 _MISSING = object()
 
@@ -110,6 +110,7 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         "side": (_length, 10.0),
         "length": (_length, 20.0),
         "size": (_length, None),
+        "refinements": (_int(0), 3),  # octasphere
         "file": (_str, None),
         "labels": (None, None),  # checked in _check_mesh
     },
@@ -119,7 +120,8 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         "centre": (_vector3, None),
     },
     "boundary": {
-        "clamp": (_choice("boundary", "none"), "boundary"),
+        # rigid: pin the six rigid-body modes of a closed surface (see model._rigid_pins)
+        "clamp": (_choice("boundary", "rigid", "none"), "boundary"),
     },
     "load": {
         "pressure": (_pressure_any, 16e3),
@@ -301,8 +303,8 @@ def _validate(raw: dict, base_dir: Path) -> dict:
     if len(labels) > 1 and (None in labels or len(set(labels)) != len(labels)):
         raise _Bad("region", "with several regions each needs its own distinct label")
     gen = data["mesh"]["generator"]
-    if gen in ("sphere",) and data["boundary"]["clamp"] == "boundary":
-        data["boundary"]["clamp"] = "none"  # a closed surface has no boundary to clamp
+    if gen in ("sphere", "octasphere") and "clamp" not in raw.get("boundary", {}):
+        data["boundary"]["clamp"] = "rigid"  # a closed surface has no boundary to clamp
     return data
 
 

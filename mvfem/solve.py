@@ -220,7 +220,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
                  f"dofs, pressure {model.p_target / 1e3:g} kPa")
     reached, t_reached = stepper.run(1.0)
     t_reached = ramp(t_reached)
-    stop_reason = "" if reached else "the load step fell below its minimum"
+    stop_reason = stepper.stop_reason
     final_ok = False
     if reached:
         problem.set_tolerances(rtol=s["rtol"], atol=tight_atol)

@@ -235,6 +235,7 @@ class LoadStepper:
     predictor: bool = True
     on_step: Callable[[StepRecord, "LoadStepper"], None] | None = None
     history: list[StepRecord] = field(default_factory=list)
+    stop_reason: str = ""
 
     def run(self, target: float = 1.0, start: float = 0.0) -> tuple[bool, float]:
         """Advance to ``target``; returns (reached, last converged load).
@@ -265,10 +266,15 @@ class LoadStepper:
                 self.set_state(saved)
                 dt /= 2
                 if dt < self.min_step * (target - start):
+                    self.stop_reason = (f"load step below the minimum {self.min_step:g} after "
+                                        f"{info.reason}")
                     break
+        reached = t >= target - 1e-14
+        if not reached and not self.stop_reason:
+            self.stop_reason = f"step budget of {self.max_steps} attempts used (solver.max_steps)"
         self.set_state(saved)
         self.set_load(t)
-        return t >= target - 1e-14, t
+        return reached, t
 
     @property
     def converged_steps(self) -> int:

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import gc
-import logging
 
 import pytest
 from mpi4py import MPI
 
-# FFCx calls logging.basicConfig() and logs each JIT build at INFO through the root logger
-logging.getLogger().setLevel(logging.WARNING)
+from mvfem.cli import quiet_jit_logs  # noqa: E402
+
+quiet_jit_logs()
 
 
 @pytest.fixture(autouse=True)

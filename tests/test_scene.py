@@ -1,0 +1,82 @@
+"""Scene validation: every bad input is one InputError naming the file, key and problem."""
+
+from __future__ import annotations
+
+import pytest
+
+from mvfem.errors import InputError
+from mvfem.scene import load_scene, parse_set_option
+from mvfem.units import MMHG_PA, PRESSURE, parse_quantity
+
+BASE = {"mesh": {"generator": "disk", "radius": 5.0, "size": 1.0},
+        "region": [{"law": "mny", "params": "MNY-mean"}]}
+
+
+def test_defaults_and_units():
+    s = load_scene(BASE)
+    assert s["load"]["pressure"] == 16e3 and s["load"]["follower"] is True
+    assert s["region"][0]["thickness"] == 0.85  # from the MNY-mean set
+    assert s["region"][0]["params"] == {"c0": 399.0, "c1": 4.325, "c2": 1446.5}
+    s2 = s.with_changes({"load.pressure": "120 mmHg", "region.0.thickness": "0.1 cm"})
+    assert s2["load"]["pressure"] == pytest.approx(120 * 133.322368, rel=1e-8)
+    assert s2["region"][0]["thickness"] == pytest.approx(1.0)
+    assert s["load"]["pressure"] == 16e3  # the original is unchanged
+
+
+@pytest.mark.parametrize("text,value", [("16 kPa", 16e3), ("120 mmHg", 120 * MMHG_PA),
+                                        ("0.5MPa", 5e5), (250, 250.0), ("1e3 Pa", 1e3)])
+def test_pressure_units(text, value):
+    assert parse_quantity(text, PRESSURE, "Pa") == pytest.approx(value)
+
+
+@pytest.mark.parametrize("change,words", [
+    ({"mesh.colour": "red"}, ["mesh.colour", "unknown key"]),
+    ({"mesh.generator": "cube"}, ["mesh.generator", "disk"]),
+    ({"mesh.radius": -2}, ["mesh.radius", "positive"]),
+    ({"mesh.radius": "2 furlongs"}, ["mesh.radius", "unknown unit"]),
+    ({"load.pressure": "16 kPaa"}, ["load.pressure", "kPaa"]),
+    ({"load.pressure": True}, ["load.pressure"]),
+    ({"load.follower": "yes"}, ["load.follower", "true or false"]),
+    ({"region.0.thickness": -0.1}, ["region[0].thickness", "positive"]),
+    ({"region.0.params": "CP11"}, ["region[0].params", "CP11", "unknown"]),
+    ({"region.0.law": "hooke"}, ["region[0].law", "svk"]),
+    ({"region.0.law": "svk"}, ["region[0].params", "for law 'mny'"]),
+    ({"region.0.params": {"c0": 1.0, "c1": 2.0}}, ["region[0].params.c2", "required"]),
+    ({"region.0.params": {"c0": 1.0, "c1": 2.0, "c2": 1.0, "E": 3.0}}, ["region[0].params.e"]),
+    ({"solver.degree": 0}, ["solver.degree", "at least 1"]),
+    ({"solver.degree": 1.5}, ["solver.degree", "integer"]),
+    ({"fibres.direction": [0, 0, 0]}, ["fibres.direction", "zero"]),
+    ({"fibres.direction": "spiral"}, ["fibres.direction", "circumferential"]),
+    ({"output.probes": [{"name": "a", "point": [0, 0]}]}, ["output.probes[0].point"]),
+    ({"mesh.generator": "file", "mesh.file": "no/such.vtu"}, ["mesh.file", "no such file"]),
+    ({"colour": 1}, ["colour", "unknown key"]),
+])
+def test_bad_values(change, words):
+    with pytest.raises(InputError) as e:
+        load_scene(BASE).with_changes(change)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith("<dict>: ")
+    for w in words:
+        assert w in msg, msg
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(InputError, match="no such scene file"):
+        load_scene(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[mesh\ngenerator = 'disk'\n")
+    with pytest.raises(InputError, match=r"bad.toml: not valid TOML"):
+        load_scene(bad)
+    nomesh = tmp_path / "nomesh.toml"
+    nomesh.write_text("[[region]]\nlaw = 'mny'\nparams = 'CP01'\n")
+    with pytest.raises(InputError, match=r"nomesh.toml: mesh: required"):
+        load_scene(nomesh)
+
+
+def test_set_option_parsing():
+    assert parse_set_option("solver.degree=2") == ("solver.degree", 2)
+    assert parse_set_option("load.pressure=120 mmHg") == ("load.pressure", "120 mmHg")
+    assert parse_set_option('load.pressure="16 kPa"') == ("load.pressure", "16 kPa")
+    assert parse_set_option("load.follower=false") == ("load.follower", False)
+    with pytest.raises(InputError):
+        parse_set_option("nokey")

@@ -1,0 +1,90 @@
+"""Runs of scenes: outputs, exit codes, and the same answer on 1 and 2 processes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from mvfem.cli import main
+from mvfem.solve import solve
+
+DISK = {"title": "coarse disk", "mesh": {"generator": "disk", "radius": 10.0, "size": 1.25},
+        "region": [{"law": "mny", "params": "MNY-mean"}],
+        "output": {"probes": [{"name": "centre", "point": [0.0, 0.0, 0.0]},
+                              {"name": "off", "point": [3.0, 2.0, 0.0]}]}}
+
+
+@pytest.mark.mpi
+def test_same_answer_on_one_and_all_processes(comm):
+    """Every rank solves the whole disk alone (COMM_SELF) and together (COMM_WORLD)."""
+    together = solve(DISK, comm=comm, progress=False)
+    alone = solve(DISK, comm=MPI.COMM_SELF, progress=False)
+    assert together.converged and alone.converged
+    for name in ("centre", "off"):
+        a = np.array(together.summary["probes"][name]["displacement_mm"])
+        b = np.array(alone.summary["probes"][name]["displacement_mm"])
+        assert np.abs(a - b).max() < 1e-8 * np.abs(b).max()
+    for key in ("p5", "median", "p95"):
+        a = together.summary["regions"]["membrane"]["radial_cauchy_stress_Pa"][key]
+        b = alone.summary["regions"]["membrane"]["radial_cauchy_stress_Pa"][key]
+        assert a == pytest.approx(b, rel=1e-8)
+    assert together.summary["cells"] == alone.summary["cells"]
+
+
+def test_outputs_and_equilibrium(tmp_path):
+    r = solve(DISK, out=tmp_path / "run", progress=False)
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    for key in ("converged", "wall_time_s", "dofs", "cells", "load_steps", "newton_iterations",
+                "pressure_Pa", "max_displacement_mm", "max_penetration_mm", "timing", "probes",
+                "regions"):
+        assert key in s
+    for key in ("assembly_s", "linear_solve_s", "contact_s", "other_s", "reference_step_s"):
+        assert s["timing"][key] >= 0
+    assert s["converged"] and s["equilibrium_residual"] < 1e-7
+    assert s["pressure_Pa"] == 16e3
+    # the centre of an axisymmetric inflation moves (almost) straight up
+    u = s["probes"]["centre"]["displacement_mm"]
+    assert u[2] > 5 and abs(u[0]) < 0.02 * u[2] and abs(u[1]) < 0.02 * u[2]
+    assert s["max_displacement_mm"] == pytest.approx(np.linalg.norm(u), rel=0.02)
+    reg = s["regions"]["membrane"]
+    assert reg["area_mm2"] == pytest.approx(np.pi * 100, rel=0.02)
+    q = reg["radial_cauchy_stress_Pa"]
+    assert 0 < q["p5"] <= q["p25"] <= q["median"] <= q["p75"] <= q["p95"]
+    xdmf = (tmp_path / "run" / "fields.xdmf").read_text()
+    for name in ("displacement", "radial_almansi_strain", "radial_cauchy_stress_Pa",
+                 "circumferential_cauchy_stress_Pa", "region"):
+        assert f'Name="{name}"' in xdmf
+    assert r.fields["radial_cauchy_stress_Pa"].x.array.min() > 0  # inflated: all in tension
+
+
+def test_cli_run_and_solver_stopped_short(tmp_path, capsys):
+    scene = tmp_path / "disk.toml"
+    scene.write_text('title = "disk"\n[mesh]\ngenerator = "disk"\nradius = 10.0\nsize = 1.25\n'
+                     '[[region]]\nlaw = "mny"\nparams = "CP08"\n')
+    assert main(["run", str(scene), "--out", str(tmp_path / "ok")]) == 0
+    assert json.loads((tmp_path / "ok" / "summary.json").read_text())["converged"]
+    # a step budget too small to arrive: exit 3, a summary with converged false, a state kept
+    code = main(["run", str(scene), "--out", str(tmp_path / "short"), "--set", "solver.max_steps=2",
+                 "--set", "solver.first_step=0.05"])
+    assert code == 3
+    err = capsys.readouterr().err
+    assert "solver stopped" in err and "kPa" in err and "Traceback" not in err
+    s = json.loads((tmp_path / "short" / "summary.json").read_text())
+    assert s["converged"] is False and 0 < s["pressure_Pa"] < 16e3
+    assert "max_steps" in s["stop_reason"]
+    assert (tmp_path / "short" / "fields.xdmf").exists()
+
+
+def test_cli_run_bad_input(tmp_path, capsys):
+    scene = tmp_path / "disk.toml"
+    scene.write_text('[mesh]\ngenerator = "disk"\n[[region]]\nlaw = "mny"\nparams = "MNY-mean"\n'
+                     'thickness = -1\n')
+    out = tmp_path / "never"
+    assert main(["run", str(scene), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "disk.toml" in err[0] and "region[0].thickness" in err[0]
+    assert not out.exists()
+    assert main(["run", str(scene), "--set", "nokey"]) == 2
