@@ -135,6 +135,43 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _cmd_mesh(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+    from mpi4py import MPI
+
+    from mvfem.meshes import write_surface
+    from mvfem.model import build_mesh
+    from mvfem.scene import load_scene
+
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise InputError(f"--out {out}: exists; choose another name or pass --force")
+    if out.suffix.lower() not in (".vtu", ".vtk", ".xdmf", ".msh", ".stl", ".ply", ".obj"):
+        raise InputError(f"--out {out}: unknown mesh format {out.suffix!r} (use .vtu, .xdmf, ...)")
+    m = {"generator": args.kind, "size": args.size, "radius": args.radius, "side": args.side,
+         "length": args.length, "refinements": args.refinements}
+    try:
+        scene = load_scene({"mesh": {k: v for k, v in m.items() if v is not None},
+                            "region": [{"law": "neo-hookean", "params": {"mu": 1.0},
+                                        "thickness": 1.0}]})
+    except InputError as e:  # name the option, not the scene key
+        raise InputError(str(e).replace("<dict>: mesh.", "--")) from None
+    surface = build_mesh(scene, MPI.COMM_SELF)
+    msh = surface.mesh
+    x = msh.geometry.x
+    cells = msh.geometry.dofmap.array.reshape(-1, 3)
+    tags = np.zeros(len(cells), dtype=np.int32)
+    if surface.cell_tags is not None:
+        tags[surface.cell_tags.indices] = surface.cell_tags.values
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_surface(out, x, cells, cell_data={"region": tags})
+    surface.write_info(str(out) + ".json")
+    _say(f"wrote {out} ({len(cells)} triangles, {len(x)} nodes) and {out}.json")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of `mvfem` (exposed for documentation and tests)."""
     p = _Parser(prog="mvfem", description="Mitral valve closure with hyperelastic membranes.")
@@ -157,6 +194,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--set", action="append", metavar="KEY.PATH=VALUE",
                    help="change a scene value, e.g. --set load.pressure='\"120 mmHg\"' (repeatable)")
     r.set_defaults(func=_cmd_run)
+
+    g = sub.add_parser("mesh", help="write a generated mesh (any meshio format)")
+    g.add_argument("kind", choices=("disk", "square", "sphere", "octasphere", "tube"))
+    g.add_argument("--out", required=True, help="mesh file, e.g. disk.vtu")
+    g.add_argument("--size", type=float, help="target edge length, mm")
+    g.add_argument("--radius", type=float, help="disk, sphere, tube radius, mm")
+    g.add_argument("--side", type=float, help="square side, mm")
+    g.add_argument("--length", type=float, help="tube length, mm")
+    g.add_argument("--refinements", type=int, help="octasphere subdivisions")
+    g.add_argument("--force", action="store_true", help="replace an existing file")
+    g.set_defaults(func=_cmd_mesh)
 
     m = sub.add_parser("materials", help="list parameter sets with law, values, thickness, source")
     m.add_argument("--leaflet", choices=("anterior", "posterior"))

@@ -99,3 +99,19 @@ def test_refuses_user_directory(tmp_path, capsys):
     assert main(["biaxial", "--points", "3", "--out", str(mine)]) == 2
     assert "not written by mvfem" in capsys.readouterr().err
     assert (mine / "biaxial.csv").read_text() == "my own data\n"
+
+
+def test_mesh_command_writes_readable_file(tmp_path, capsys):
+    from mvfem.meshes import read_surface
+
+    out = tmp_path / "disk.vtu"
+    assert main(["mesh", "disk", "--radius", "5", "--size", "0.5", "--out", str(out)]) == 0
+    raw = read_surface(out)
+    a, b, c = (raw.points[raw.triangles[:, i]] for i in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum()
+    # a polygon inscribed in the circle with edges of 0.5 mm misses well under 1 % of the area
+    assert area == pytest.approx(np.pi * 25, rel=1e-2)
+    assert (tmp_path / "disk.vtu.json").exists()
+    assert main(["mesh", "disk", "--out", str(out)]) == 2  # never overwrites
+    assert main(["mesh", "disk", "--size", "-1", "--out", str(tmp_path / "x.vtu")]) == 2
+    assert "--size" in capsys.readouterr().err
