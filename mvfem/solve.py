@@ -57,8 +57,10 @@ def _petsc_options(model: Model, load_norm: float) -> dict:
     opts = {"snes_rtol": s["rtol"], "snes_atol": s["tolerance"] * load_norm,
             "snes_max_it": s["max_it"]}
     if s["linear_solver"] == "iterative":
-        opts.update({"ksp_type": "gmres", "pc_type": "gamg", "ksp_rtol": 1e-10,
-                     "ksp_max_it": 2000, "pc_factor_mat_solver_type": None})
+        # GAMG failed from the slack start (disk, MNY); block-Jacobi ILU(1) converged there
+        opts.update({"ksp_type": "gmres", "pc_type": "bjacobi", "sub_pc_type": "ilu",
+                     "sub_pc_factor_levels": 1, "ksp_rtol": 1e-8, "ksp_max_it": 1000,
+                     "ksp_gmres_restart": 200, "pc_factor_mat_solver_type": None})
     for k, v in (s["petsc_options"] or {}).items():
         opts[k] = v
     return {k: v for k, v in opts.items() if v is not None}
