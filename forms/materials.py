@@ -35,8 +35,18 @@ def svk(m: Membrane, E, nu) -> ufl.core.expr.Expr:
     return E / (2 * (1 - nu**2)) * ((1 - nu) * ufl.tr(Em * Em) + nu * ufl.tr(Em) ** 2)
 
 
-def _capped(Q, max_exponent):
-    return Q if max_exponent is None else ufl.min_value(Q, max_exponent)
+def _exp(Q, max_exponent):
+    """``exp(Q)``, or with ``max_exponent`` its C1 continuation beyond that exponent.
+
+    Beyond ``Qc`` the exponential is continued by its tangent line ``e^Qc (1 + Q - Qc)``: the
+    energy keeps growing (an over-stretched element still resists; a flat cap would let Newton
+    park elements on a plateau), yet stays finite.
+    """
+    if max_exponent is None:
+        return ufl.exp(Q)
+    Qc = max_exponent
+    inside = ufl.exp(ufl.min_value(Q, Qc))  # never overflows, even where not selected
+    return ufl.conditional(ufl.lt(Q, Qc), inside, ufl.exp(Qc) * (1 + Q - Qc))
 
 
 def may_newman_yin(m: Membrane, c0, c1, c2, max_exponent=None) -> ufl.core.expr.Expr:
@@ -46,11 +56,12 @@ def may_newman_yin(m: Membrane, c0, c1, c2, max_exponent=None) -> ufl.core.expr.
         W = c_0\\left[\\exp\\left(c_1 (I_1 - 3)^2 + c_2 (\\lambda - 1)^4\\right) - 1\\right]
 
     with ``lambda`` the fibre stretch (``c0`` in Pa). With ``max_exponent`` the exponent is
-    capped there, so that a wild Newton iterate gives a huge but finite residual instead of an
-    overflow; states that reach the cap are far outside the law's range and are flagged.
+    continued linearly beyond that value (see :func:`_exp`), so that a wild Newton iterate gives
+    a huge but finite residual instead of an overflow; states that pass it are far outside the
+    law's range and are flagged by the solver.
     """
     Q = c1 * (m.I1 - 3) ** 2 + c2 * (m.fibre_stretch - 1) ** 4
-    return c0 * (ufl.exp(_capped(Q, max_exponent)) - 1)
+    return c0 * (_exp(Q, max_exponent) - 1)
 
 
 def holzapfel(m: Membrane, c0, c1, c2, max_exponent=None) -> ufl.core.expr.Expr:
@@ -62,7 +73,7 @@ def holzapfel(m: Membrane, c0, c1, c2, max_exponent=None) -> ufl.core.expr.Expr:
     ``max_exponent`` as for :func:`may_newman_yin`.
     """
     Q = c1 * (m.I1 - 3) ** 2 + c2 * (m.I4 - 1) ** 2
-    return c0 * (ufl.exp(_capped(Q, max_exponent)) - 1)
+    return c0 * (_exp(Q, max_exponent) - 1)
 
 
 def exponent(law: str, m: Membrane, c0, c1, c2) -> ufl.core.expr.Expr:

@@ -24,6 +24,21 @@ class _Parser(argparse.ArgumentParser):
         raise InputError(f"{self.prog}: {message}")
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever sys.stderr is at the time (main() may run many times in a process)."""
+
+    def __init__(self):
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value):
+        pass
+
+
 def _setup_logging(verbose: bool) -> None:
     from mpi4py import MPI
 
@@ -31,7 +46,7 @@ def _setup_logging(verbose: bool) -> None:
     root = logging.getLogger("mvfem")
     root.setLevel(level if MPI.COMM_WORLD.rank == 0 else logging.WARNING)
     if not root.handlers:
-        h = logging.StreamHandler(sys.stderr)
+        h = _StderrHandler()
         h.setFormatter(logging.Formatter("%(message)s"))
         root.addHandler(h)
     root.propagate = False

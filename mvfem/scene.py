@@ -131,8 +131,7 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         "degree": (_int(1), 1),
         "quadrature_degree": (_int(1), None),
         "tolerance": (_pos, 1e-8),  # equilibrium: ||R|| <= tolerance x ||pressure load||
-        "rtol": (_pos, 1e-9),  # final solve, relative to its first residual
-        "step_rtol": (_pos, 1e-6),  # intermediate load steps
+        "step_tolerance": (_pos, 1e-6),  # intermediate load steps, same measure
         "max_it": (_int(1), 25),
         "linear_solver": (_choice("lu", "iterative"), "lu"),
         "ramp": (_choice("cubic", "linear"), "cubic"),

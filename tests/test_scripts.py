@@ -36,3 +36,10 @@ def test_biaxial_figures(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert (out / "biaxial.csv").stat().st_size > 100_000
     assert (out / "biaxial_anterior.png").exists() and (out / "biaxial_posterior.png").exists()
+
+
+def test_solver_options_coarse(tmp_path):
+    r = subprocess.run([*_mpirun(2), sys.executable, str(ROOT / "scripts" / "solver_options.py"),
+                        "2.5"], capture_output=True, text=True, env=_env(), timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "lu: 11 converged" in r.stdout and "iterative: 11 converged" in r.stdout
