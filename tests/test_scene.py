@@ -80,3 +80,13 @@ def test_set_option_parsing():
     assert parse_set_option("load.follower=false") == ("load.follower", False)
     with pytest.raises(InputError):
         parse_set_option("nokey")
+
+
+def test_example_scenes_validate():
+    from pathlib import Path
+
+    scenes = sorted((Path(__file__).resolve().parents[1] / "scripts" / "scenes").glob("*.toml"))
+    assert scenes
+    for path in scenes:
+        s = load_scene(path)
+        assert s["mesh"]["generator"] and s["region"]
