@@ -7,7 +7,9 @@ from __future__ import annotations
 
 from .generators import SurfaceMesh, disk, sphere, square, tube
 from .io import RawSurface, mesh_from_arrays, read_surface, to_dolfinx, write_surface
+from .octasphere import octasphere
 from .patch import square_patch
 
 __all__ = ["square_patch", "SurfaceMesh", "disk", "square", "sphere", "tube", "RawSurface",
-           "read_surface", "write_surface", "to_dolfinx", "mesh_from_arrays"]
+           "read_surface", "write_surface", "to_dolfinx", "mesh_from_arrays",
+           "octasphere"]

@@ -1,4 +1,11 @@
-"""Cell-wise (DG0) values of UFL expressions, for outputs and checks."""
+"""Cell-wise (DG0) values of UFL expressions, for outputs and checks.
+
+Values are the midpoint values of each cell, computed by assembling ``(expr, w)`` against a DG0
+test function with one-point (midpoint) quadrature and dividing by the cell area. This is exact
+for quantities that are constant on a cell (any function of a P1 membrane's kinematics), and it
+goes through form compilation, the same path as the solver's forms: FFCx 0.5 generates code that
+does not compile for some ``fem.Expression`` that mix ``ufl.Jacobian`` with ``grad(u)``.
+"""
 
 from __future__ import annotations
 
@@ -7,23 +14,38 @@ import numpy as np
 __all__ = ["cell_function", "cell_values"]
 
 
-def cell_function(expr, msh, shape: tuple[int, ...] = (), name: str | None = None):
-    """Interpolate ``expr`` at the cell midpoints into a DG0 ``fem.Function`` of ``shape``.
-
-    Exact for quantities that are constant on each cell (any function of a P1 membrane's
-    kinematics on flat triangles).
-    """
+def _space(msh, shape):
     from dolfinx import fem
 
     if shape == ():
-        V = fem.FunctionSpace(msh, ("DG", 0))
-    elif len(shape) == 1:
-        V = fem.VectorFunctionSpace(msh, ("DG", 0), dim=shape[0])
-    else:
-        V = fem.TensorFunctionSpace(msh, ("DG", 0), shape=shape)
+        return fem.FunctionSpace(msh, ("DG", 0))
+    if len(shape) == 1:
+        return fem.VectorFunctionSpace(msh, ("DG", 0), dim=shape[0])
+    return fem.TensorFunctionSpace(msh, ("DG", 0), shape=shape)
+
+
+def cell_function(expr, msh, shape: tuple[int, ...] = (), name: str | None = None):
+    """A DG0 ``fem.Function`` of ``shape`` holding ``expr`` at each cell's midpoint."""
+    import ufl
+    from dolfinx import fem
+    from dolfinx.fem import petsc as fpetsc
+    from petsc4py import PETSc
+
+    V = _space(msh, shape)
+    w = ufl.TestFunction(V)
+    dx = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": 1})
+    value = fpetsc.assemble_vector(fem.form(ufl.inner(expr, w) * dx))
+    one = ufl.as_tensor(np.ones(shape)) if shape else 1.0
+    area = fpetsc.assemble_vector(fem.form(ufl.inner(one, w) * dx))
     f = fem.Function(V, name=name)
-    f.interpolate(fem.Expression(expr, V.element.interpolation_points()))
+    for vec in (value, area):
+        vec.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    # DG0 dofs belong to one cell each: no summation across ranks is needed
+    n = value.getLocalSize()
+    f.x.array[:n] = value.array_r / area.array_r
     f.x.scatter_forward()
+    value.destroy()
+    area.destroy()
     return f
 
 

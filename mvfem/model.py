@@ -148,8 +148,9 @@ def _directions(msh, fibres: dict):
     x = ufl.SpatialCoordinate(msh)
     n0 = unit_normal(ufl.Jacobian(msh))
     axis = np.asarray(fibres["axis"], dtype=float)
-    axis = ufl.as_vector(axis / np.linalg.norm(axis))
-    c = ufl.as_vector(_centre(msh, fibres["centre"]))
+    # Constants, not literals: the generated code is then the same for every mesh (JIT cache)
+    axis = fem.Constant(msh, axis / np.linalg.norm(axis))
+    c = fem.Constant(msh, _centre(msh, fibres["centre"]))
     d = x - c
     circ = _tangent_unit(ufl.cross(axis, d), n0)
     radial = _tangent_unit(d - ufl.dot(d, axis) * axis, n0)
@@ -159,7 +160,7 @@ def _directions(msh, fibres: dict):
     elif direction == "radial":
         fibre = radial
     else:
-        fibre = _tangent_unit(ufl.as_vector(direction), n0)
+        fibre = _tangent_unit(fem.Constant(msh, np.asarray(direction, dtype=float)), n0)
     return fibre, radial, circ
 
 
