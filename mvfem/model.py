@@ -14,6 +14,7 @@ import numpy as np
 import ufl
 from dolfinx import fem, mesh as dmesh
 from mpi4py import MPI
+from petsc4py import PETSc
 
 from mvfem.errors import InputError
 from mvfem.forms import LAWS, Membrane, cauchy_stress, is_exponential, membrane, unit_normal
@@ -228,7 +229,7 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
             raise InputError(f"{scene.source}: boundary.clamp: the mesh has no boundary to clamp "
                              "(use clamp = \"none\")")
         dofs = fem.locate_dofs_topological(V, 1, facets)
-        bcs.append(fem.dirichletbc(np.zeros(3, dtype=PETSc_scalar()), dofs, V))
+        bcs.append(fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), dofs, V))
     elif scene["boundary"]["clamp"] == "rigid":
         bcs += _rigid_pins(V, scene)
 
@@ -275,7 +276,6 @@ def _rigid_pins(V, scene: Scene) -> list:
 def lumped_mass(model: Model):
     """Nodal area per displacement dof (PETSc Vec), zero on Dirichlet dofs."""
     from dolfinx.fem import petsc as fpetsc
-    from petsc4py import PETSc
 
     v = ufl.TestFunction(model.V)
     one = ufl.as_vector((1.0, 1.0, 1.0))
@@ -283,9 +283,3 @@ def lumped_mass(model: Model):
     m.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
     fpetsc.set_bc(m, model.bcs, scale=0.0)
     return m
-
-
-def PETSc_scalar():
-    from petsc4py import PETSc
-
-    return PETSc.ScalarType

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from mvfem.errors import SolverError
+from mvfem.errors import InputError, SolverError
 from mvfem.model import MAX_EXPONENT, Model, build_model, lumped_mass
 from mvfem.scene import Scene, load_scene
 from mvfem.solver import LoadStepper, SNESProblem, SolveInfo, StepRecord
@@ -93,7 +93,7 @@ class _Progress:
             log.debug(msg)
 
 
-def _equilibrium_check(model: Model, problem: SNESProblem | None) -> tuple[float, float]:
+def _equilibrium_check(model: Model) -> tuple[float, float]:
     """(||R(u)||, ||f_p||): residual of the problem as posed (no stabiliser), free dofs only."""
     from dolfinx import fem
     from dolfinx.fem import petsc as fpetsc
@@ -171,13 +171,21 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
 
     t_start = time.perf_counter()
     scene = load_scene(scene)
-    if out is not None and comm.rank == 0:
-        prepare_out(out)
+    if out is not None:  # checked on rank 0, the verdict shared: no rank may run on alone
+        refused = None
+        if comm.rank == 0:
+            try:
+                prepare_out(out)
+            except InputError as e:
+                refused = str(e)
+        refused = comm.bcast(refused, root=0)
+        if refused:
+            raise InputError(refused)
     model = build_model(scene, comm)
     t_build = time.perf_counter() - t_start
     s = scene["solver"]
     model.pressure.value = model.p_target
-    _, load_norm = _equilibrium_check(model, None)
+    _, load_norm = _equilibrium_check(model)
     model.pressure.value = 0.0
     problem = SNESProblem(model.residual, model.u, model.bcs, prefix=f"mvfem{next(_ids)}_",
                           options=_petsc_options(model, load_norm))
@@ -231,7 +239,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
                                                    set_state, last_converged, n_owned,
                                                    model.stabiliser_scale)
     problem.set_proximal(0.0)
-    r_norm, f_norm = _equilibrium_check(model, problem)
+    r_norm, f_norm = _equilibrium_check(model)
     rel = r_norm / f_norm if f_norm > 0 else r_norm
     q_max = _max_exponent(model)
     if final_ok and q_max >= MAX_EXPONENT:
