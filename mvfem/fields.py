@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["cell_function", "cell_values"]
+__all__ = ["cell_function", "cell_values", "mean_deformed_radius"]
 
 
 def _space(msh, shape):
@@ -56,3 +56,15 @@ def cell_values(expr, msh, shape: tuple[int, ...] = ()) -> np.ndarray:
     size = int(np.prod(shape)) if shape else 1
     blocks = f.function_space.dofmap.list.array[:n]  # one DG0 block per cell, in cell order
     return f.x.array.reshape(-1, size)[blocks].reshape((n, *shape))
+
+
+def mean_deformed_radius(u, centre=(0.0, 0.0, 0.0)) -> float:
+    """Mean distance of the deformed nodes of a P1 displacement ``u`` from ``centre`` (collective)."""
+    from mpi4py import MPI
+
+    V = u.function_space
+    n = V.dofmap.index_map.size_local
+    x = V.tabulate_dof_coordinates()[:n] + u.x.array.reshape(-1, 3)[:n] - np.asarray(centre)
+    comm = V.mesh.comm
+    total = comm.allreduce(float(np.linalg.norm(x, axis=1).sum()), op=MPI.SUM)
+    return total / comm.allreduce(n, op=MPI.SUM)

@@ -36,6 +36,7 @@ from mpi4py import MPI
 from mvfem import reference as ref
 from mvfem.meshes import SurfaceMesh, octasphere
 from mvfem.meshes.octasphere import octasphere_arrays
+from mvfem.fields import mean_deformed_radius
 from mvfem.solve import solve
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,12 +79,7 @@ def _volume(r) -> float:
 
 def _mean_radius(r) -> float:
     """Mean distance of the deformed nodes from the origin (collective)."""
-    V = r.u.function_space
-    n = V.dofmap.index_map.size_local
-    x = V.tabulate_dof_coordinates()[:n] + r.u.x.array.reshape(-1, 3)[:n]
-    comm = V.mesh.comm
-    total = comm.allreduce(float(np.linalg.norm(x, axis=1).sum()), op=MPI.SUM)
-    return total / comm.allreduce(n, op=MPI.SUM)
+    return mean_deformed_radius(r.u)
 
 
 def _rate(h, err) -> float:
