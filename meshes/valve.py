@@ -1,0 +1,795 @@
+"""The open (diastolic) mitral valve as a triangle surface mesh: the stress-free reference shape
+of a closure simulation. Lengths in millimetres.
+
+Geometry (all in a local frame: ``x`` anterior, ``y`` commissural with the anterolateral
+commissure at ``+y``, ``z`` = the annulus-plane normal from ventricle to atrium; the frame is
+right-handed, so looking from the atrium with anterior up, ``+y`` is on the left as in the
+surgeon's view):
+
+- the annulus is a closed curve ``A(s)``, ``s`` the normalised arc length, running
+  counter-clockwise about ``z`` from the anterior midpoint (``s = 0``). Parametric default: the
+  ellipse ``x = (D_ap/2) cos t, y = (D_c/2) sin t`` with the saddle
+  ``z = (h_s/2) cos 2t`` (high points anterior and posterior, low points at the commissures).
+  Patient: the given loop, its plane, centre and axes by PCA, smoothed by a truncated Fourier
+  series in arc length.
+- the commissures split it by arc length: the anterior leaflet hangs from
+  ``|s| <= share/2``, the posterior from the rest.
+- each leaflet is the ruled surface ``X(s, r) = A(s) + r H(s) d(s)``, ``0 <= r <= 1``, with
+  ``d = -cos(alpha) z + sin(alpha) n_in`` (down toward the ventricle, tilted inward by
+  ``alpha`` along the in-plane inward normal ``n_in = z x T`` of the annulus, Gaussian-smoothed
+  along the annulus so that rulings do not cross at sharp turns: a funnel) and the height
+  profile
+
+  .. math:: H = h_c (1 - e^{-l/\\ell}) + (H_{max} - h_c)\\, g(\\tau),\\quad
+            g = 1 - (1 - \\sin \\pi\\tau)^q,
+
+  ``tau`` in [0, 1] across the leaflet, ``l`` the arc length to the nearer commissure,
+  ``q = 1`` anterior (rounded), ``q = 2`` posterior (flatter, wide), and ``ell`` chosen so that
+  the free edge leaves the annulus at ``commissure_angle`` to it.
+- commissures: ``H = 0`` at the two commissure points, so both free edges end there. The two
+  leaflets share exactly these two annulus vertices and no edge: between them at each
+  commissure is a narrow V-shaped slit of opening ``2 (90 deg - commissure_angle)``.
+
+Meshing: the ruled surfaces are sampled finely (a discrete gmsh model), reparametrised by gmsh
+(``createGeometry``) and remeshed with the target ``size``, graded to ``free_edge_size`` near
+the free edges; gmsh runs on rank 0 only, the mesh is distributed as in
+:mod:`mvfem.meshes.generators`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from .generators import SurfaceMesh, _gmsh_model, _orient
+from .io import _cpp_mesh, _raise_from_root, mesh_from_arrays, write_surface
+
+__all__ = ["ValveMesh", "valve", "write_valve", "LEAFLETS", "MUSCLES"]
+
+logger = logging.getLogger(__name__)
+
+#: cell tag values of the leaflets (also the ``leaflet`` cell data written by :func:`write_valve`)
+LEAFLETS = {"anterior": 1, "posterior": 2}
+#: papillary muscle names, by index: 0 on the +y (anterolateral) side, 1 on the -y side
+MUSCLES = ("anterolateral", "posteromedial")
+_GROUPS = {"anterior": 1, "posterior": 2, "annulus": 3, "free_edge_anterior": 4,
+           "free_edge_posterior": 5}
+# exponent q of the height profile g = 1 - (1 - sin(pi tau))^q
+_PROFILE = {"anterior": 1.0, "posterior": 2.0}
+_DENSE = 4096  # samples of the annulus curve
+
+
+@dataclass
+class ValveMesh(SurfaceMesh):
+    """An open mitral valve: a :class:`SurfaceMesh` with the subvalvular landmarks.
+
+    Every array below is the same on all ranks (global, not distributed).
+
+    Attributes:
+        papillary_tips: (P, 3) chordae origins on the papillary muscles, mm.
+        papillary_muscle: (P,) index into :data:`MUSCLES` of each tip's muscle.
+        insertion_points: (K, 3) chordae insertion points; each is a mesh vertex.
+        insertion_leaflet: (K,) tag value (:data:`LEAFLETS`) of the leaflet it is on.
+        insertion_family: (K,) ``"marginal"`` (a free-edge vertex), ``"strut"`` (anterior belly)
+            or ``"basal"`` (posterior belly, near the annulus).
+        insertion_muscle: (K,) muscle index (the muscle on the insertion's side of the
+            anteroposterior midline).
+        insertion_tip: (K,) index into ``papillary_tips``: the nearest tip of that muscle.
+        axis: unit annulus-plane normal, from ventricle to atrium (the cell normals' side).
+        centre: annulus centroid (arc-length weighted), mm.
+        frame: rows = unit anterior, commissural (toward the anterolateral commissure) and
+            ``axis`` directions: the local frame of the module docstring.
+        commissures: (2, 3) the anterolateral and posteromedial commissure points.
+        annulus_curve: (M, 3) the (smoothed) annulus curve the mesh is built on, closed, in
+            order of increasing ``s`` from the anterior midpoint.
+
+    Tags (``names``): cells ``"anterior"`` (1) and ``"posterior"`` (2); edges ``"annulus"``,
+    ``"free_edge_anterior"``, ``"free_edge_posterior"``. The cross product of the cell
+    tangents, cross(dX/dxi1, dX/dxi2), points from the ventricle to the atrium in every cell.
+    """
+
+    papillary_tips: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    papillary_muscle: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
+    insertion_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    insertion_leaflet: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
+    insertion_family: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype="<U8"))
+    insertion_muscle: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
+    insertion_tip: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
+    axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    frame: np.ndarray = field(default_factory=lambda: np.eye(3))
+    commissures: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
+    annulus_curve: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def insertions(self, family: str | None = None, leaflet: str | None = None) -> np.ndarray:
+        """Indices (into ``insertion_points``) of one family and/or one leaflet."""
+        keep = np.ones(len(self.insertion_points), dtype=bool)
+        if family is not None:
+            keep &= self.insertion_family == family
+        if leaflet is not None:
+            keep &= self.insertion_leaflet == LEAFLETS[leaflet]
+        return np.flatnonzero(keep)
+
+
+def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0,
+          saddle_height: float = 6.0, anterior_height: float = 24.0,
+          posterior_height: float = 13.0, anterior_share: float = 150.0 / 360.0,
+          commissure_height: float = 6.0, commissure_angle: float = 80.0,
+          anterior_angle: float = 20.0, posterior_angle: float = 25.0,
+          papillary_depth: float = 23.5, papillary_inset: float = 4.0,
+          size: float = 1.0, free_edge_size: float = 0.5, refine_distance: float = 5.0,
+          chordae_spacing: float = 2.5,
+          strut_points: Sequence[Sequence[float]] = ((0.3, 0.6), (0.7, 0.6)),
+          basal_points: Sequence[Sequence[float]] = ((0.25, 0.3), (0.5, 0.3), (0.75, 0.3)),
+          annulus: np.ndarray | None = None, papillary: np.ndarray | None = None,
+          anterior_direction: Sequence[float] | None = None,
+          annulus_modes: int = 16, ruling_smoothing: float = 4.0) -> ValveMesh:
+    """The open mitral valve: two leaflets hanging from the annulus toward the papillary
+    muscles (see the module docstring for the construction).
+
+    Defaults are the healthy adult numbers of ``/work/shared/data/README.md``.
+
+    Args:
+        comm: MPI communicator (gmsh runs on its rank 0).
+        ap_diameter: anteroposterior annulus diameter, mm (parametric annulus only).
+        commissural_diameter: commissural annulus diameter, mm (parametric annulus only).
+        saddle_height: annulus height, highest minus lowest point, mm (parametric only).
+        anterior_height: anterior leaflet height at its middle, annulus to free edge, mm.
+        posterior_height: posterior leaflet height at its middle, mm.
+        anterior_share: fraction of the annulus length taken by the anterior leaflet.
+        commissure_height: height the leaflets rise to within a few mm of a commissure, mm
+            (at most 3/4 of a leaflet's height).
+        commissure_angle: angle between annulus and free edge at a commissure, degrees
+            (< 90; the slit between the leaflets opens by twice its complement).
+        anterior_angle: inward tilt of the anterior leaflet from the axis, degrees (0: hangs
+            straight down; larger closes the funnel).
+        posterior_angle: inward tilt of the posterior leaflet, degrees.
+        papillary_depth: default tips: depth below the annulus plane, mm.
+        papillary_inset: default tips: distance inward (toward the axis) from below the
+            commissure, mm.
+        size: target edge length, mm.
+        free_edge_size: edge length at the free edges, mm (graded to ``size`` over
+            ``refine_distance``).
+        refine_distance: distance from the free edge over which the size grows, mm.
+        chordae_spacing: marginal insertions: about one free-edge vertex per this arc length,
+            mm; the ends (within one spacing of a commissure) are left out.
+        strut_points: anterior strut insertions as ``(tau, r)``: fraction across the leaflet
+            (from the posteromedial commissure) and fraction of the local height from the
+            annulus.
+        basal_points: posterior basal insertions as ``(tau, r)``.
+        annulus: optional patient annulus, (N, 3) ordered closed loop, any frame (e.g. image
+            coordinates), mm; overrides the three annulus dimensions.
+        papillary: optional papillary tips, (P, 3), same frame as ``annulus``; their side of
+            the annulus plane is the ventricle. Without it the tips are placed as by default
+            (and, for a patient annulus, the ventricle is taken on the side about which the
+            loop turns clockwise).
+        anterior_direction: optional vector (in the frame of ``annulus``) from the annulus
+            centre toward the anterior annulus. Without it the anterior side is the flatter
+            side of the loop (the straight border of the D-shaped annulus), i.e. the one
+            nearer the commissural axis.
+        annulus_modes: Fourier modes kept when smoothing a patient annulus.
+        ruling_smoothing: the in-plane direction of the rulings is the annulus's inward normal
+            smoothed by a Gaussian of this standard deviation along the annulus, mm; it keeps
+            the rulings from crossing where the annulus turns sharply (a D-shaped patient
+            annulus's corners).
+
+    Returns:
+        A :class:`ValveMesh`.
+
+    Raises:
+        ValueError: on invalid arguments (on every rank).
+    """
+    params = dict(ap_diameter=ap_diameter, commissural_diameter=commissural_diameter,
+                  saddle_height=saddle_height, anterior_height=anterior_height,
+                  posterior_height=posterior_height, anterior_share=anterior_share,
+                  commissure_height=commissure_height, commissure_angle=commissure_angle,
+                  anterior_angle=anterior_angle, posterior_angle=posterior_angle,
+                  papillary_depth=papillary_depth, papillary_inset=papillary_inset,
+                  size=size, free_edge_size=free_edge_size, refine_distance=refine_distance,
+                  chordae_spacing=chordae_spacing, annulus_modes=annulus_modes,
+                  ruling_smoothing=ruling_smoothing)
+    params = {k: (int(v) if k == "annulus_modes" else float(v)) for k, v in params.items()}
+    params["strut_points"] = [[float(a) for a in p] for p in strut_points]
+    params["basal_points"] = [[float(a) for a in p] for p in basal_points]
+
+    _check(params)  # on every rank: the same ValueError everywhere
+    result = err = None
+    if comm.rank == 0:
+        try:
+            result = _build_on_root(params, annulus, papillary, anterior_direction)
+        except Exception as exc:  # gmsh raises plain Exception
+            err = exc
+    # bad input data (a ValueError on rank 0) is a ValueError on every rank
+    bad = comm.bcast(str(err) if isinstance(err, ValueError) else None, root=0)
+    if bad is not None:
+        if comm.rank == 0:
+            raise err
+        raise ValueError(bad)
+    _raise_from_root(comm, err)
+    if comm.rank == 0:
+        arrays, extras = result
+    else:
+        arrays, extras = (None,) * 5, None
+    extras = comm.bcast(extras, root=0)
+    msh, cell_tags, facet_tags = mesh_from_arrays(comm, *arrays)
+    return ValveMesh(msh, cell_tags, facet_tags, dict(_GROUPS), extras.pop("info"), **extras)
+
+
+def write_valve(path: str | os.PathLike, valve: ValveMesh) -> None:
+    """Write the valve (its current geometry) as an imported-valve file (CONTRACT.md): cell data
+    ``leaflet`` (1 anterior, 2 posterior) and point data ``annulus`` (1 on annulus nodes).
+
+    Collective over the mesh's communicator; rank 0 writes. Any meshio format (.vtu, .xdmf, ...).
+    """
+    from dolfinx import cpp
+
+    msh = valve.mesh
+    comm = msh.comm
+    tdim = msh.topology.dim
+    nloc = msh.topology.index_map(tdim).size_local
+    dofs = msh.geometry.dofmap.array.reshape(-1, 3)[:nloc]
+    gid = np.asarray(msh.geometry.input_global_indices, dtype=np.int64)
+    leaflet = np.zeros(nloc, dtype=np.int32)
+    owned = valve.cell_tags.indices < nloc
+    leaflet[valve.cell_tags.indices[owned]] = valve.cell_tags.values[owned]
+    facets = valve.facets("annulus")
+    ann = cpp.mesh.entities_to_geometry(_cpp_mesh(msh), tdim - 1, facets, False).ravel()
+
+    parts = comm.gather((gid[dofs], msh.geometry.x[dofs], leaflet, gid[ann]), root=0)
+    if comm.rank != 0:
+        return
+    ids = np.concatenate([p[0] for p in parts])
+    xyz = np.concatenate([p[1] for p in parts]).reshape(-1, 3)
+    used, first, tri = np.unique(ids.ravel(), return_index=True, return_inverse=True)
+    points = xyz[first]
+    on_annulus = np.isin(used, np.concatenate([p[3] for p in parts])).astype(np.int32)
+    write_surface(path, points, tri.reshape(-1, 3),
+                  point_data={"annulus": on_annulus},
+                  cell_data={"leaflet": np.concatenate([p[2] for p in parts])})
+
+
+# --- construction on rank 0 ------------------------------------------------------------------
+
+def _build_on_root(p: dict, annulus, papillary, anterior_direction):
+    t_start = time.perf_counter()
+    if annulus is None:
+        loop, origin, frame, source = _ellipse(p), np.zeros(3), np.eye(3), "parametric"
+        if papillary is not None:
+            papillary = _points(papillary, "papillary")
+    else:
+        annulus = _points(annulus, "annulus")
+        papillary = None if papillary is None else _points(papillary, "papillary")
+        loop, origin, frame = _patient_frame(annulus, papillary, anterior_direction,
+                                             p["annulus_modes"])
+        source = "patient"
+    curve = _Curve(loop, p["ruling_smoothing"])
+    perimeter = curve.length
+    fit = 0.0
+    if annulus is not None:  # how far the given points are from the smoothed curve
+        from scipy.spatial import cKDTree
+
+        fit = float(cKDTree(curve.x).query((annulus - origin) @ frame.T)[0].max())
+    s_c = 0.5 * p["anterior_share"]
+    leaflets = {"anterior": _Leaflet("anterior", curve, -s_c, s_c, p),
+                "posterior": _Leaflet("posterior", curve, s_c, 1.0 - s_c, p)}
+
+    # papillary tips in the local frame, their muscles
+    if papillary is None:
+        tips = []
+        for s in (s_c, -s_c):  # anterolateral (+y), posteromedial (-y)
+            c = curve.point(s)
+            inward = -c[:2] / np.linalg.norm(c[:2])
+            tips.append([*(c[:2] + p["papillary_inset"] * inward), -p["papillary_depth"]])
+        tips = np.array(tips)
+        muscle = np.array([0, 1], dtype=np.int32)
+    else:
+        tips = (papillary - origin) @ frame.T
+        mid = 0.5 * (tips[:, 1].min() + tips[:, 1].max())
+        muscle = np.where(tips[:, 1] >= mid, 0, 1).astype(np.int32)
+        if len(tips) == 1:
+            muscle = np.array([0 if tips[0, 1] >= 0 else 1], dtype=np.int32)
+
+    t_geom = time.perf_counter()
+    arrays, stats = _mesh(leaflets, p)
+    points, cells, cell_values, edges, edge_values = arrays
+    t_mesh = time.perf_counter()
+
+    ins = _insertions(points, cells, cell_values, edges, edge_values, leaflets, tips, muscle, p)
+
+    # local frame -> given frame
+    to_global = lambda x: origin + np.asarray(x) @ frame  # noqa: E731
+    points = to_global(points)
+    centre = to_global(curve.centroid)
+    axis = frame[2].copy()
+    comm_pts = to_global(np.array([curve.point(s_c), curve.point(-s_c)]))
+    q = _quality(points, cells)
+    areas = {name: float(q["areas"][cell_values == v].sum()) for name, v in LEAFLETS.items()}
+
+    info = {"generator": "valve", "annulus_source": source, **p,
+            "anterior_direction": None if anterior_direction is None
+            else [float(v) for v in anterior_direction],
+            "annulus_points_given": 0 if annulus is None else int(len(annulus)),
+            "papillary_given": 0 if papillary is None else int(len(papillary)),
+            "frame_origin": origin.tolist(), "frame": frame.tolist(),
+            "annulus_perimeter_mm": float(perimeter), "annulus_fit_max_mm": fit,
+            "annulus_saddle_height_mm": float(np.ptp(curve.x[:, 2])),
+            "commissure_s": [float(s_c), float(-s_c)],
+            "leaflets": {name: lf.describe() for name, lf in leaflets.items()},
+            "leaflet_area_mm2": areas,
+            "cells": int(len(cells)), "vertices": int(len(points)),
+            "min_angle_deg": q["min_angle"], "max_angle_deg": q["max_angle"],
+            "min_quality": q["min_quality"], "mean_quality": q["mean_quality"],
+            "cells_min_angle_below_30deg": q["below30"],
+            "edge_length_mm": q["edges"],
+            "cells_flipped": stats["flipped"],
+            "time_s": {"geometry": t_geom - t_start, "gmsh": stats["gmsh_s"],
+                       "total_root": t_mesh - t_start}}
+    extras = {"info": info,
+              "papillary_tips": to_global(tips), "papillary_muscle": muscle,
+              "insertion_points": to_global(ins["points"]),
+              "insertion_leaflet": ins["leaflet"], "insertion_family": ins["family"],
+              "insertion_muscle": ins["muscle"], "insertion_tip": ins["tip"],
+              "axis": axis, "centre": centre, "frame": frame.copy(), "commissures": comm_pts,
+              "annulus_curve": to_global(curve.x)}
+    logger.info("valve: %d cells, %d vertices, min angle %.1f deg, %.2f s", len(cells),
+                len(points), q["min_angle"], time.perf_counter() - t_start)
+    return (points, cells, cell_values, edges, edge_values), extras
+
+
+def _check(p: dict) -> None:
+    for k in ("ap_diameter", "commissural_diameter", "anterior_height", "posterior_height",
+              "commissure_height", "size", "free_edge_size", "refine_distance",
+              "chordae_spacing", "papillary_depth"):
+        if not p[k] > 0:
+            raise ValueError(f"valve: {k} must be positive, got {p[k]}")
+    for k in ("saddle_height", "papillary_inset", "ruling_smoothing"):
+        if not p[k] >= 0:
+            raise ValueError(f"valve: {k} must be >= 0, got {p[k]}")
+    if not 0.1 <= p["anterior_share"] <= 0.9:
+        raise ValueError(f"valve: anterior_share must be in [0.1, 0.9], got {p['anterior_share']}")
+    if not 30.0 <= p["commissure_angle"] < 90.0:
+        raise ValueError("valve: commissure_angle must be in [30, 90) degrees")
+    for k in ("anterior_angle", "posterior_angle"):
+        if not 0.0 <= p[k] < 80.0:
+            raise ValueError(f"valve: {k} must be in [0, 80) degrees, got {p[k]}")
+    if p["free_edge_size"] > p["size"]:
+        raise ValueError("valve: free_edge_size must not exceed size")
+    if p["annulus_modes"] < 2:
+        raise ValueError("valve: annulus_modes must be >= 2")
+    for k in ("strut_points", "basal_points"):
+        for tr in p[k]:
+            if len(tr) != 2 or not (0 < tr[0] < 1 and 0 < tr[1] <= 1):
+                raise ValueError(f"valve: {k} entries must be (tau, r) with 0 < tau < 1, "
+                                 f"0 < r <= 1, got {tr}")
+
+
+def _points(a, name: str) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3 or len(a) < 1 or not np.all(np.isfinite(a)):
+        raise ValueError(f"valve: {name} must be a finite (N, 3) array, got shape {a.shape}")
+    return a
+
+
+def _ellipse(p: dict) -> np.ndarray:
+    t = np.linspace(0.0, 2 * np.pi, 8 * _DENSE, endpoint=False)
+    return np.column_stack([0.5 * p["ap_diameter"] * np.cos(t),
+                            0.5 * p["commissural_diameter"] * np.sin(t),
+                            0.5 * p["saddle_height"] * np.cos(2 * t)])
+
+
+def _patient_frame(loop: np.ndarray, papillary, anterior_direction, modes: int):
+    """Plane, centre and axes of a patient annulus; its smoothed loop in the local frame."""
+    if len(loop) < 8:
+        raise ValueError(f"valve: annulus needs at least 8 points, got {len(loop)}")
+    if np.linalg.norm(loop[0] - loop[-1]) < 1e-9 * np.ptp(loop):
+        loop = loop[:-1]
+    seg = np.linalg.norm(np.roll(loop, -1, axis=0) - loop, axis=1)
+    mids = 0.5 * (loop + np.roll(loop, -1, axis=0))
+    c = (mids * seg[:, None]).sum(0) / seg.sum()
+    _, sv, vt = np.linalg.svd(loop - c, full_matrices=False)
+    if sv[1] < 1e-6 * sv[0]:
+        raise ValueError("valve: annulus points are collinear")
+    e2, n = vt[0], vt[2]  # major axis: commissural; least: plane normal
+    if papillary is not None:
+        if (papillary.mean(0) - c) @ n > 0:
+            n = -n
+    else:
+        # no papillary tips: the loop turns counter-clockwise about the atrial normal
+        xy = (loop - c) @ np.array([vt[0], vt[1]]).T
+        area = 0.5 * np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1])
+        if area * (np.cross(vt[0], vt[1]) @ n) < 0:
+            n = -n
+        logger.warning("valve: patient annulus without papillary tips; ventricle side taken "
+                       "from the loop's orientation")
+    e1 = np.cross(e2, n)
+    if anterior_direction is not None:
+        a = np.asarray(anterior_direction, dtype=float)
+        if a.shape != (3,) or abs(a @ e1) < 1e-12:
+            raise ValueError("valve: anterior_direction must be a 3-vector not along the "
+                             "commissural axis")
+        sign = np.sign(a @ e1)
+    else:
+        x = (loop - c) @ e1
+        sign = 1.0 if x.max() < -x.min() else -1.0  # the flatter (nearer) side is anterior
+        if papillary is not None and ((papillary.mean(0) - c) @ e1) * sign > 0:
+            logger.warning("valve: the papillary tips lie on the side taken as anterior")
+    e1, e2 = sign * e1, sign * e2
+    frame = np.array([e1, e2, n])
+    local = (loop - c) @ frame.T
+    # counter-clockwise about +z
+    area = 0.5 * np.sum(local[:, 0] * np.roll(local[:, 1], -1)
+                        - np.roll(local[:, 0], -1) * local[:, 1])
+    if area < 0:
+        local = local[::-1]
+    return _fourier(local, modes), c, frame
+
+
+def _fourier(loop: np.ndarray, modes: int) -> np.ndarray:
+    """Least-squares truncated Fourier series of a closed loop in its arc length; resampled."""
+    seg = np.linalg.norm(np.roll(loop, -1, axis=0) - loop, axis=1)
+    u = np.concatenate([[0.0], np.cumsum(seg)[:-1]]) / seg.sum()
+    modes = min(modes, (len(loop) - 1) // 2)
+    k = np.arange(1, modes + 1)
+
+    def basis(v):
+        return np.column_stack([np.ones_like(v), np.cos(2 * np.pi * np.outer(v, k)),
+                                np.sin(2 * np.pi * np.outer(v, k))])
+
+    coef, *_ = np.linalg.lstsq(basis(u), loop, rcond=None)
+    return basis(np.linspace(0.0, 1.0, 8 * _DENSE, endpoint=False)) @ coef
+
+
+class _Curve:
+    """A closed curve in the local frame, by normalised arc length ``s`` (period 1), ``s = 0``
+    where it crosses the +x half-axis, running counter-clockwise about +z."""
+
+    def __init__(self, loop: np.ndarray, smoothing: float = 0.0):
+        closed = np.vstack([loop, loop[:1]])
+        seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
+        u = np.concatenate([[0.0], np.cumsum(seg)])
+        self.length = float(u[-1])
+        # start where the polar angle changes sign at x > 0
+        ang = np.arctan2(loop[:, 1], loop[:, 0])
+        cross = np.flatnonzero((ang <= 0) & (np.roll(ang, -1) > 0) & (loop[:, 0] > 0))
+        if len(cross) != 1:
+            raise ValueError("valve: the annulus must wind once around its centre "
+                             "(it crosses the anterior half-axis "
+                             f"{len(cross)} times)")
+        i = cross[0]
+        frac = -ang[i] / (ang[(i + 1) % len(ang)] - ang[i])
+        u0 = u[i] + frac * seg[i]
+        s = np.linspace(0.0, 1.0, _DENSE, endpoint=False)
+        target = (u0 + s * self.length) % self.length
+        self.x = np.column_stack([np.interp(target, u, closed[:, j]) for j in range(3)])
+        self.s = s
+        h = 1.0 / _DENSE
+        t = (np.roll(self.x, -1, axis=0) - np.roll(self.x, 1, axis=0)) / (2 * h * self.length)
+        self.t = t / np.linalg.norm(t, axis=1)[:, None]
+        tp = self.t * np.array([1.0, 1.0, 0.0])
+        tp /= np.linalg.norm(tp, axis=1)[:, None]
+        self.n_in = np.cross(np.array([0.0, 0.0, 1.0]), tp)
+        if smoothing > 0:  # periodic Gaussian filter, standard deviation `smoothing` mm
+            k = np.fft.rfftfreq(_DENSE, d=self.length / _DENSE)
+            gain = np.exp(-2.0 * (np.pi * smoothing * k) ** 2)
+            self.n_in = np.fft.irfft(np.fft.rfft(self.n_in, axis=0) * gain[:, None], n=_DENSE,
+                                     axis=0)
+            self.n_in /= np.linalg.norm(self.n_in, axis=1)[:, None]
+        mids = 0.5 * (self.x + np.roll(self.x, -1, axis=0))
+        self.centroid = mids.mean(0)
+
+    def _interp(self, data, s):
+        s = np.asarray(s, dtype=float) % 1.0
+        ss = np.concatenate([self.s, [1.0]])
+        dd = np.vstack([data, data[:1]])
+        return np.stack([np.interp(s, ss, dd[:, j]) for j in range(3)], axis=-1)
+
+    def point(self, s):
+        return self._interp(self.x, s)
+
+    def tangent(self, s):
+        t = self._interp(self.t, s)
+        return t / np.linalg.norm(t, axis=-1, keepdims=True)
+
+    def inward(self, s):
+        n = self._interp(self.n_in, s)
+        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+class _Leaflet:
+    """The ruled surface of one leaflet over the annulus arc ``s0 <= s <= s1``."""
+
+    def __init__(self, name: str, curve: _Curve, s0: float, s1: float, p: dict):
+        self.name, self.curve, self.s0, self.s1 = name, curve, s0, s1
+        self.arc = (s1 - s0) * curve.length
+        self.height = p[f"{name}_height"]
+        self.alpha = math.radians(p[f"{name}_angle"])
+        self.q = _PROFILE[name]
+        self.hc = min(p["commissure_height"], 0.75 * self.height)
+        # free edge leaves the annulus at commissure_angle: H'(0) = hc/ell + (H - hc) g'(0)/arc
+        slope = math.tan(math.radians(p["commissure_angle"]))
+        rest = (self.height - self.hc) * self.q * math.pi / self.arc
+        self.ell = self.hc / max(slope - rest, 0.5 * slope)
+
+    def describe(self) -> dict:
+        return {"arc_length_mm": float(self.arc), "height_mm": float(self.height),
+                "commissure_height_mm": float(self.hc), "commissure_ramp_mm": float(self.ell),
+                "tilt_deg": math.degrees(self.alpha), "profile_q": self.q,
+                "mean_height_mm": float(self.heights(np.linspace(0, 1, 2001)).mean())}
+
+    def s(self, tau):
+        return self.s0 + np.asarray(tau) * (self.s1 - self.s0)
+
+    def heights(self, tau):
+        tau = np.clip(np.asarray(tau, dtype=float), 0.0, 1.0)
+        dist = np.minimum(tau, 1.0 - tau) * self.arc
+        g = 1.0 - (1.0 - np.sin(np.pi * tau)) ** self.q
+        return self.hc * (1.0 - np.exp(-dist / self.ell)) + (self.height - self.hc) * g
+
+    def direction(self, tau):
+        n_in = self.curve.inward(self.s(tau))
+        return (-math.cos(self.alpha) * np.array([0.0, 0.0, 1.0])
+                + math.sin(self.alpha) * n_in)
+
+    def point(self, tau, r):
+        """X(tau, r) = A + r H d."""
+        tau, r = np.broadcast_arrays(np.asarray(tau, float), np.asarray(r, float))
+        return (self.curve.point(self.s(tau)) + (r * self.heights(tau))[..., None]
+                * self.direction(tau))
+
+    def sample(self, h: float):
+        """A fine triangulation of the leaflet, edge length about ``h``: Delaunay in the
+        developed coordinates (arc length along the annulus, distance along the ruling),
+        mapped onto the ruled surface.
+
+        Returns:
+            ``(X, tri, annulus, free)``: points (n, 3); triangles (m, 3) oriented along
+            cross(dX/dtau, dX/dr) (the atrial side); the annulus and free-edge vertices in order
+            of increasing tau. Both curves start and end at the two commissure points (vertices
+            ``annulus[0] == free[0]`` and ``annulus[-1] == free[-1]``).
+        """
+        from scipy.spatial import Delaunay
+
+        nt = max(int(math.ceil(self.arc / h)), 16)
+        tau = np.linspace(0.0, 1.0, nt + 1)
+        H = self.heights(tau)
+        H[[0, -1]] = 0.0
+        xi, eta, kind = [], [], []  # kind: 0 interior, 1 annulus, 2 free edge, 3 commissure
+        for i, (t, hh) in enumerate(zip(tau, H)):
+            if i in (0, nt):
+                xi.append(t), eta.append(0.0), kind.append(3)
+                continue
+            m = max(int(math.ceil(hh / h)), 1)
+            if i % 2:  # stagger alternate columns: near-equilateral triangles
+                rr = np.concatenate([[0.0], (np.arange(m) + 0.5) / m, [1.0]])
+            else:
+                rr = np.linspace(0.0, 1.0, m + 1)
+            xi += [t] * len(rr)
+            eta += list(rr * hh)
+            kind += [1] + [0] * (len(rr) - 2) + [2]
+        xi, eta, kind = np.array(xi), np.array(eta), np.array(kind)
+        plane = np.column_stack([xi * self.arc, eta])
+        tri = Delaunay(plane).simplices
+        # keep triangles inside the domain eta <= H(xi) (drop hull triangles above the edge)
+        cen = plane[tri].mean(axis=1)
+        inside = cen[:, 1] <= np.interp(cen[:, 0], tau * self.arc, H) + 1e-9 * self.height
+        tri = tri[inside]
+        v = plane[tri]
+        det = ((v[:, 1, 0] - v[:, 0, 0]) * (v[:, 2, 1] - v[:, 0, 1])
+               - (v[:, 1, 1] - v[:, 0, 1]) * (v[:, 2, 0] - v[:, 0, 0]))
+        tri[det < 0] = tri[det < 0][:, [0, 2, 1]]  # counter-clockwise in the plane: dtau x dr
+        tri = tri[np.abs(det) > 1e-9 * h * h]  # no slivers of collinear edge points
+        hh = np.interp(xi, tau, H)
+        r = np.divide(eta, hh, out=np.zeros_like(eta), where=hh > 0)
+        X = self.point(xi, r)
+        # the map (tau, r) -> X must not fold: rulings that cross flip the 3-D normal
+        tc = xi[tri].mean(axis=1)
+        n3 = np.cross(X[tri[:, 1]] - X[tri[:, 0]], X[tri[:, 2]] - X[tri[:, 0]])
+        ref = np.cross(self.curve.tangent(self.s(tc)), self.direction(tc))
+        if np.any(np.einsum("ij,ij->i", n3, ref) <= 0):
+            raise ValueError(f"valve: the {self.name} leaflet folds (its rulings cross where "
+                             "the annulus turns sharply): lower its height or tilt, or raise "
+                             "ruling_smoothing")
+        order = np.argsort(xi, kind="stable")
+        ends = order[kind[order] == 3]
+        annulus = np.concatenate([[ends[0]], order[kind[order] == 1], [ends[-1]]])
+        free = np.concatenate([[ends[0]], order[kind[order] == 2], [ends[-1]]])
+        return X, tri, annulus, free
+
+
+# --- meshing ---------------------------------------------------------------------------------
+
+def _mesh(leaflets: dict, p: dict):
+    """Discrete gmsh model of the fine ruled surfaces -> reparametrise -> remesh."""
+    t0 = time.perf_counter()
+    with _gmsh_model("valve") as gmsh:
+        factor = gmsh.option.getNumber("Mesh.MeshSizeFactor")
+        try:
+            arrays, ref_centroids, ref_normals = _remesh(gmsh, leaflets, p)
+        finally:
+            gmsh.option.setNumber("Mesh.MeshSizeFactor", factor)
+    gmsh_s = time.perf_counter() - t0
+
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(np.concatenate(ref_centroids))
+    normals = np.concatenate(ref_normals)
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+
+    def atrial(xc):
+        return normals[tree.query(xc)[1]]
+
+    flipped = _orient(arrays[0], arrays[1], atrial, 1)
+    return arrays, {"flipped": flipped, "gmsh_s": gmsh_s}
+
+
+def _remesh(gmsh, leaflets: dict, p: dict):
+    """Build and mesh the model in the current gmsh session; return the arrays of
+    :func:`generators._extract` and the fine triangles' centroids and atrial normals."""
+    from .generators import _extract, _set_options
+
+    h_fine = max(0.5 * min(p["free_edge_size"], p["size"]), 0.25)
+    ref_centroids, ref_normals = [], []
+    model = gmsh.model
+    # commissure points: 1 anterolateral (s = +share/2), 2 posteromedial (s = -share/2)
+    fine = {name: lf.sample(h_fine) for name, lf in leaflets.items()}
+    xa, _, ann_a, _ = fine["anterior"]
+    c_al, c_pm = xa[ann_a[-1]], xa[ann_a[0]]
+    next_tag = [1]
+
+    def new_nodes(n):
+        tags = np.arange(next_tag[0], next_tag[0] + n)
+        next_tag[0] += n
+        return tags
+
+    pts = {}
+    for tag, x in ((1, c_al), (2, c_pm)):
+        model.addDiscreteEntity(0, tag)
+        nt = new_nodes(1)
+        model.mesh.addNodes(0, tag, nt, x)
+        pts[tag] = nt[0]
+    # per leaflet: annulus curve, free edge curve (both from the commissure at tau = 0 to
+    # the one at tau = 1), surface
+    curve_tag = {"anterior": (1, 2), "posterior": (3, 4)}
+    surf_tag = {"anterior": 1, "posterior": 2}
+    ends = {"anterior": (2, 1), "posterior": (1, 2)}  # (point at tau = 0, at tau = 1)
+    for name, (X, tri, ann, free) in fine.items():
+        p0, p1 = ends[name]
+        tag_of = np.zeros(len(X), dtype=np.int64)
+        tag_of[ann[0]], tag_of[ann[-1]] = pts[p0], pts[p1]
+        ca, cf = curve_tag[name]
+        for ctag, line in ((ca, ann), (cf, free)):
+            model.addDiscreteEntity(1, ctag, [p0, p1])
+            tags = new_nodes(len(line) - 2)
+            model.mesh.addNodes(1, ctag, tags, X[line[1:-1]].ravel())
+            tag_of[line[1:-1]] = tags
+            lt = tag_of[line]
+            model.mesh.addElementsByType(ctag, 1, [], np.column_stack([lt[:-1],
+                                                                       lt[1:]]).ravel())
+        model.addDiscreteEntity(2, surf_tag[name], [ca, cf])
+        inner = np.flatnonzero(tag_of == 0)
+        tag_of[inner] = new_nodes(len(inner))
+        model.mesh.addNodes(2, surf_tag[name], tag_of[inner], X[inner].ravel())
+        model.mesh.addElementsByType(surf_tag[name], 2, [], tag_of[tri].ravel())
+        v0, v1, v2 = (X[tri[:, k]] for k in range(3))
+        ref_centroids.append((v0 + v1 + v2) / 3.0)
+        ref_normals.append(np.cross(v1 - v0, v2 - v0))
+
+    model.mesh.createGeometry()
+    field_ = model.mesh.field
+    field_.add("Distance", 1)
+    field_.setNumbers(1, "CurvesList", [curve_tag["anterior"][1], curve_tag["posterior"][1]])
+    field_.setNumber(1, "NumPointsPerCurve", 2000)
+    # gmsh 4.8 caps the size on these reparametrised discrete entities at 1 (whatever the
+    # field or Mesh.MeshSizeMax say), but honours Mesh.MeshSizeFactor: sizes in units of
+    # `size`, times the factor
+    field_.add("Threshold", 2)
+    field_.setNumber(2, "InField", 1)
+    field_.setNumber(2, "SizeMin", p["free_edge_size"] / p["size"])
+    field_.setNumber(2, "SizeMax", 1.0)
+    field_.setNumber(2, "DistMin", 0.5 * p["free_edge_size"])
+    field_.setNumber(2, "DistMax", p["refine_distance"])
+    field_.setAsBackgroundMesh(2)
+    _set_options(gmsh, {"Mesh.MeshSizeMin": p["free_edge_size"] / p["size"],
+                        "Mesh.MeshSizeMax": 1.0, "Mesh.MeshSizeFromPoints": 0,
+                        "Mesh.MeshSizeExtendFromBoundary": 0, "Mesh.Algorithm": 1,
+                        "Mesh.MeshSizeFactor": p["size"]})
+    for name, value in _GROUPS.items():
+        dim, tags = {"anterior": (2, [1]), "posterior": (2, [2]),
+                     "annulus": (1, [curve_tag["anterior"][0], curve_tag["posterior"][0]]),
+                     "free_edge_anterior": (1, [curve_tag["anterior"][1]]),
+                     "free_edge_posterior": (1, [curve_tag["posterior"][1]])}[name]
+        model.addPhysicalGroup(dim, tags, value)
+        model.setPhysicalName(dim, value, name)
+    model.mesh.generate(2)
+    return _extract(gmsh, 1), ref_centroids, ref_normals
+
+
+# --- chordae insertions ----------------------------------------------------------------------
+
+def _insertions(points, cells, cell_values, edges, edge_values, leaflets, tips, muscle, p):
+    """Marginal (free-edge vertices, every ~chordae_spacing) and strut/basal (belly vertices)
+    insertion points, in the local frame; each with its muscle (by side) and nearest tip."""
+    out_pts, out_leaf, out_fam = [], [], []
+    boundary = np.unique(edges)
+    for name, lf in leaflets.items():
+        value = LEAFLETS[name]
+        fe = edges[edge_values == _GROUPS[f"free_edge_{name}"]]
+        path = _chain(fe)
+        xs = points[path]
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xs, axis=0), axis=1))])
+        n = max(int(round(arc[-1] / p["chordae_spacing"])) - 1, 1)
+        targets = arc[-1] * np.arange(1, n + 1) / (n + 1)
+        pick = np.unique([int(np.argmin(np.abs(arc - t))) for t in targets])
+        pick = pick[(pick > 0) & (pick < len(path) - 1)]
+        for i in pick:
+            out_pts.append(xs[i])
+            out_leaf.append(value)
+            out_fam.append("marginal")
+        # belly points: nearest interior vertex of this leaflet
+        family, where = ("strut", p["strut_points"]) if name == "anterior" else \
+            ("basal", p["basal_points"])
+        verts = np.setdiff1d(np.unique(cells[cell_values == value]), boundary)
+        for tau, r in where:
+            target = lf.point(tau, r)
+            k = verts[np.argmin(np.linalg.norm(points[verts] - target, axis=1))]
+            out_pts.append(points[k])
+            out_leaf.append(value)
+            out_fam.append(family)
+    pts = np.array(out_pts)
+    # muscle by side of the anteroposterior midline (y = 0); nearest tip of that muscle
+    present = np.unique(muscle)
+    side = np.where(pts[:, 1] >= 0, 0, 1)
+    m = np.where(np.isin(side, present), side, present[0]).astype(np.int32)
+    tip = np.empty(len(pts), dtype=np.int32)
+    for i, (x, mi) in enumerate(zip(pts, m)):
+        cand = np.flatnonzero(muscle == mi)
+        tip[i] = cand[np.argmin(np.linalg.norm(tips[cand] - x, axis=1))]
+    return {"points": pts, "leaflet": np.array(out_leaf, dtype=np.int32),
+            "family": np.array(out_fam), "muscle": m, "tip": tip}
+
+
+def _chain(edges: np.ndarray) -> np.ndarray:
+    """Vertices of an open polyline given by its edges, in order from one end."""
+    nbr: dict[int, list[int]] = {}
+    for a, b in edges:
+        nbr.setdefault(int(a), []).append(int(b))
+        nbr.setdefault(int(b), []).append(int(a))
+    ends = [v for v, nb in nbr.items() if len(nb) == 1]
+    if len(ends) != 2 or any(len(nb) > 2 for nb in nbr.values()):
+        raise RuntimeError("valve: a free edge is not a single open curve")
+    path, prev = [min(ends)], -1
+    while len(path) < len(nbr):
+        nxt = [v for v in nbr[path[-1]] if v != prev]
+        prev = path[-1]
+        path.append(nxt[0])
+    return np.array(path)
+
+
+# --- quality ---------------------------------------------------------------------------------
+
+def _quality(points: np.ndarray, cells: np.ndarray) -> dict:
+    """Angles, edge lengths, areas; quality = 4 sqrt(3) area / sum of squared edge lengths
+    (1 for an equilateral triangle)."""
+    x = points[cells]
+    e = np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 1], x[:, 0] - x[:, 2]], axis=1)
+    L = np.linalg.norm(e, axis=2)
+    area = 0.5 * np.linalg.norm(np.cross(e[:, 0], -e[:, 2]), axis=1)
+    ang = []
+    for i in range(3):
+        u, v = e[:, i], -e[:, i - 1]
+        ang.append(np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u, v)
+                                                / (L[:, i] * L[:, i - 1]), -1, 1))))
+    ang = np.stack(ang, axis=1)
+    qual = 4 * np.sqrt(3) * area / (L**2).sum(1)
+    return {"min_angle": float(ang.min()), "max_angle": float(ang.max()),
+            "min_quality": float(qual.min()), "mean_quality": float(qual.mean()),
+            "below30": int(np.sum(ang.min(1) < 30)),
+            "edges": {"min": float(L.min()), "median": float(np.median(L)),
+                      "max": float(L.max())},
+            "areas": area}
