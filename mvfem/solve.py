@@ -1,10 +1,11 @@
 """Run a scene: build the model, ramp the pressure with SNES, write the outputs.
 
 Start-up of laws with zero stiffness at the stress-free state: every load step is solved with
-the proximal term ``k (u - u_prev)`` (``u_prev`` the last converged state), which keeps the
-tangent regular on a flat or slack membrane. At full load ``k`` is reduced tenfold per solve
-and finally set to zero: the reported state is an equilibrium of the problem as posed, and
-``summary.json`` gives its residual relative to the pressure load.
+the lumped proximal term ``k M (u - u_prev)`` (``u_prev`` the last converged state), which keeps
+the tangent regular on a flat or slack membrane. At full load the term is removed (a direct
+solve without it, or else reductions of ``k`` ending at zero): the reported state is an
+equilibrium of the problem as posed, and ``summary.json`` gives its residual relative to the
+pressure load.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from mvfem.model import MAX_EXPONENT, Model, build_model, lumped_mass
 from mvfem.scene import Scene, load_scene
 from mvfem.solver import LoadStepper, SNESProblem, SolveInfo, StepRecord
 
-__all__ = ["solve", "Result"]
+__all__ = ["solve", "Result", "check_converged"]
 
 log = logging.getLogger(__name__)
 _ids = itertools.count()
