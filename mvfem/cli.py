@@ -134,7 +134,7 @@ def _cmd_run(args) -> int:
     from pathlib import Path
 
     from mvfem.scene import load_scene, parse_set_option
-    from mvfem.solve import check_converged, solve
+    from mvfem.run import check_converged, solve
 
     scene = load_scene(args.scene)
     if args.set:

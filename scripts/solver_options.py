@@ -16,7 +16,7 @@ from mpi4py import MPI
 
 from mvfem.cli import quiet_jit_logs
 from mvfem.materials import parameter_sets
-from mvfem.solve import solve
+from mvfem.run import solve
 
 
 def main(size: float = 0.5) -> None:

@@ -32,7 +32,7 @@ from mpi4py import MPI
 from mvfem import reference as ref
 from mvfem.cli import quiet_jit_logs
 from mvfem.fields import mean_deformed_radius
-from mvfem.solve import solve
+from mvfem.run import solve
 
 RADIUS = 10.0
 ORIGIN = [0.0, 0.0, 0.0]

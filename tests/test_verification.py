@@ -1,6 +1,6 @@
 """Verification of whole runs against independent references (:mod:`mvfem.reference`).
 
-Every test compares a number from :func:`mvfem.solve.solve` with one derived without dolfinx or
+Every test compares a number from :func:`mvfem.run.solve` with one derived without dolfinx or
 UFL (ODE shooting or closed form), and bounds the error by what the discretisation explains:
 
 - Föppl-Hencky: clamped SVK disk under a small dead pressure; centre deflection and enclosed
@@ -37,7 +37,7 @@ from mvfem import reference as ref
 from mvfem.meshes import SurfaceMesh, octasphere
 from mvfem.meshes.octasphere import octasphere_arrays
 from mvfem.fields import mean_deformed_radius
-from mvfem.solve import solve
+from mvfem.run import solve
 
 ROOT = Path(__file__).resolve().parents[1]
 RADIUS = 10.0  # mm, disk and sphere

@@ -9,7 +9,7 @@ import pytest
 from mpi4py import MPI
 
 from mvfem.cli import main
-from mvfem.solve import solve
+from mvfem.run import solve
 
 DISK = {"title": "coarse disk", "mesh": {"generator": "disk", "radius": 10.0, "size": 1.25},
         "region": [{"law": "mny", "params": "MNY-mean"}],
@@ -88,3 +88,14 @@ def test_cli_run_bad_input(tmp_path, capsys):
     assert len(err) == 1 and "disk.toml" in err[0] and "region[0].thickness" in err[0]
     assert not out.exists()
     assert main(["run", str(scene), "--set", "nokey"]) == 2
+
+
+def test_contract_python_api(tmp_path):
+    """The API of CONTRACT.md: mvfem.load_scene, with_changes, mvfem.solve, summary, u."""
+    import mvfem
+
+    scene = mvfem.load_scene(DISK).with_changes({"load.pressure": "60 mmHg"})
+    result = mvfem.solve(scene, out=tmp_path / "x", progress=False)
+    assert isinstance(result, mvfem.Result) and result.converged
+    assert result.summary["pressure_Pa"] == pytest.approx(60 * 133.322368, rel=1e-8)
+    assert result.u.function_space.mesh is result.model.mesh
