@@ -96,10 +96,26 @@ def _cmd_biaxial(args) -> int:
     for leaflet in leaflets:
         for name in sets or ():
             get_set(name, leaflet)
-    out = prepare_out(args.out)
-    t0 = time.perf_counter()
-    res = run_biaxial(out, leaflets=leaflets, strain_min=smin, strain_max=smax,
-                      points=args.points, sets=sets)
+    # a few thousand point evaluations: rank 0 does them all; the others only wait. dolfinx is
+    # imported everywhere first because PETSc initialisation is collective.
+    import dolfinx  # noqa: F401
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    outcome = None
+    if comm.rank == 0:
+        try:
+            out = prepare_out(args.out)
+            t0 = time.perf_counter()
+            res = run_biaxial(out, leaflets=leaflets, strain_min=smin, strain_max=smax,
+                              points=args.points, sets=sets)
+        except InputError as e:
+            outcome = str(e)
+    outcome = comm.bcast(outcome, root=0)
+    if outcome:
+        raise InputError(outcome)
+    if comm.rank != 0:
+        return 0
     _say(f"biaxial: {res['rows']} states, {len(res['curves'])} curves in "
          f"{time.perf_counter() - t0:.1f} s")
     if res["overflow"]:
