@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["cell_function", "cell_values", "mean_deformed_radius"]
+__all__ = ["cell_function", "cell_values", "per_cell", "mean_deformed_radius"]
 
 
 def _space(msh, shape):
@@ -49,13 +49,21 @@ def cell_function(expr, msh, shape: tuple[int, ...] = (), name: str | None = Non
     return f
 
 
+def per_cell(f) -> np.ndarray:
+    """The values of a DG0 function in local cell order (owned, then ghost cells).
+
+    Returns an array of shape ``(ncells, *value_shape)``; a writable copy.
+    """
+    shape = f.ufl_shape
+    size = int(np.prod(shape)) if shape else 1
+    blocks = f.function_space.dofmap.list.array  # one DG0 block per cell, in cell order
+    return f.x.array.reshape(-1, size)[blocks].reshape((len(blocks), *shape))
+
+
 def cell_values(expr, msh, shape: tuple[int, ...] = ()) -> np.ndarray:
     """Values of ``expr`` on this rank's owned cells, array of shape ``(ncells, *shape)``."""
-    f = cell_function(expr, msh, shape)
     n = msh.topology.index_map(msh.topology.dim).size_local
-    size = int(np.prod(shape)) if shape else 1
-    blocks = f.function_space.dofmap.list.array[:n]  # one DG0 block per cell, in cell order
-    return f.x.array.reshape(-1, size)[blocks].reshape((n, *shape))
+    return per_cell(cell_function(expr, msh, shape))[:n]
 
 
 def mean_deformed_radius(u, centre=(0.0, 0.0, 0.0)) -> float:

@@ -77,13 +77,13 @@ def direction_fields(model) -> dict:
 def cell_fields(model) -> dict:
     """DG0 functions of strains and stresses per cell, and the region label of each cell.
 
-    The stress tensor and the directions are evaluated as separate DG0 fields and contracted
-    here: FFCx 0.5 emits duplicate declarations for some expressions that combine both.
+    The directions are evaluated once and each region's stress tensor once; the projections
+    ``d.sigma.d`` are formed here in numpy.
     """
     import numpy as np
     from dolfinx import fem
 
-    from mvfem.fields import cell_function
+    from mvfem.fields import cell_function, per_cell
 
     msh = model.mesh
     exprs = direction_fields(model)
@@ -95,8 +95,7 @@ def cell_fields(model) -> dict:
         fields[f"{name}_almansi_strain"] = cell_function(exprs[f"{name}_almansi_strain"], msh,
                                                          name=f"{name}_almansi_strain")
         fields[f"{name}_cauchy_stress_Pa"] = fem.Function(V0, name=f"{name}_cauchy_stress_Pa")
-        f = cell_function(exprs[f"{name}_direction"], msh, (3,))
-        dirs[name] = f.x.array.reshape(-1, 3)[f.function_space.dofmap.list.array]
+        dirs[name] = per_cell(cell_function(exprs[f"{name}_direction"], msh, (3,)))
     label = fem.Function(V0, name="region")
     n_cells = len(blocks)
     for i, region in enumerate(model.regions):
@@ -104,8 +103,7 @@ def cell_fields(model) -> dict:
             cells = np.arange(n_cells, dtype=np.int32)
         else:
             cells = model.surface.cell_tags.find(region.tag)
-        fs = cell_function(model.cauchy(region), msh, (3, 3))
-        sigma = fs.x.array.reshape(-1, 9)[fs.function_space.dofmap.list.array].reshape(-1, 3, 3)
+        sigma = per_cell(cell_function(model.cauchy(region), msh, (3, 3)))
         for name in ("radial", "circumferential"):
             d = dirs[name][cells]
             values = np.einsum("ci,cij,cj->c", d, sigma[cells], d)
@@ -120,16 +118,14 @@ def _gather_region_values(model, fields) -> dict:
     import numpy as np
     import ufl
 
-    from mvfem.fields import cell_values
+    from mvfem.fields import cell_values, per_cell
 
     msh = model.mesh
     n = msh.topology.index_map(2).size_local
-    blocks = fields["region"].function_space.dofmap.list.array[:n]
-    # reference area of each (affine) triangle; CellVolume does not compile in Expressions on 0.5
-    area = cell_values(ufl.sqrt(ufl.det(model.kin.G)) / 2, msh)
-    label = fields["region"].x.array[blocks]
-    strain = fields["radial_almansi_strain"].x.array[blocks]
-    stress = fields["radial_cauchy_stress_Pa"].x.array[blocks]
+    area = cell_values(ufl.sqrt(ufl.det(model.kin.G)) / 2, msh)  # reference area, P1 triangles
+    label = per_cell(fields["region"])[:n]
+    strain = per_cell(fields["radial_almansi_strain"])[:n]
+    stress = per_cell(fields["radial_cauchy_stress_Pa"])[:n]
     out = {}
     for i, region in enumerate(model.regions):
         sel = label == i
@@ -152,9 +148,9 @@ def probe_displacements(model, probes: list) -> dict:
     cand = geometry.compute_collisions(tree, pts)
     hits = geometry.compute_colliding_cells(msh, cand, pts)
     local = np.full((len(pts), 3), np.nan)
+    n_owned = msh.topology.index_map(2).size_local
     for i in range(len(pts)):
         cells = hits.links(i)
-        n_owned = msh.topology.index_map(2).size_local
         cells = cells[cells < n_owned]
         if len(cells):
             local[i] = model.u.eval(pts[i], cells[:1])
