@@ -12,6 +12,19 @@ from mvfem.cli import quiet_jit_logs  # noqa: E402
 quiet_jit_logs()
 
 
+def pytest_configure(config):
+    """Under mpirun each rank gets its own temporary root: two ranks cleaning pytest's shared
+    numbered directories at once race (seen as a failed `make test-mpi`)."""
+    comm = MPI.COMM_WORLD
+    if comm.size > 1 and not config.option.basetemp:
+        import os
+        import tempfile
+
+        # a fixed name per rank: pytest empties a given basetemp when it starts
+        config.option.basetemp = os.path.join(tempfile.gettempdir(),
+                                              f"mvfem-pytest-rank{comm.rank}")
+
+
 @pytest.fixture(autouse=True)
 def _collect_and_sync():
     yield
