@@ -81,6 +81,8 @@ class ValveMesh(SurfaceMesh):
         insertion_muscle: (K,) muscle index (the muscle on the insertion's side of the
             anteroposterior midline).
         insertion_tip: (K,) index into ``papillary_tips``: the nearest tip of that muscle.
+        insertion_closed: (K, 3) where each insertion sits in the designed closed valve (see
+            ``closed_depth``); chordae rest lengths are measured to it.
         axis: unit annulus-plane normal, from ventricle to atrium (the cell normals' side).
         centre: annulus centroid (arc-length weighted), mm.
         frame: rows = unit anterior, commissural (toward the anterolateral commissure) and
@@ -101,6 +103,7 @@ class ValveMesh(SurfaceMesh):
     insertion_family: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype="<U8"))
     insertion_muscle: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
     insertion_tip: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
+    insertion_closed: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
     centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
     frame: np.ndarray = field(default_factory=lambda: np.eye(3))
@@ -124,7 +127,8 @@ def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0
           anterior_angle: float = 20.0, posterior_angle: float = 25.0,
           papillary_depth: float = 23.5, papillary_inset: float = 4.0,
           size: float = 1.0, free_edge_size: float = 0.5, refine_distance: float = 5.0,
-          chordae_spacing: float = 2.5,
+          chordae_spacing: float = 2.5, coaptation_offset: float = 0.3,
+          closed_depth: float = 9.0,
           strut_points: Sequence[Sequence[float]] = ((0.3, 0.6), (0.7, 0.6)),
           basal_points: Sequence[Sequence[float]] = ((0.25, 0.3), (0.5, 0.3), (0.75, 0.3)),
           annulus: np.ndarray | None = None, papillary: np.ndarray | None = None,
@@ -159,6 +163,13 @@ def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0
         refine_distance: distance from the free edge over which the size grows, mm.
         chordae_spacing: marginal insertions: about one free-edge vertex per this arc length,
             mm; the ends (within one spacing of a commissure) are left out.
+        coaptation_offset: designed closed valve: how far the coaptation line lies toward
+            the posterior annulus at the middle, as a fraction of the distance from the
+            commissures' chord to the posterior annulus.
+        closed_depth: designed closed valve: depth of the free edges at the middle below the
+            commissures' chord, mm (tenting height 5 + coaptation length 4 by default, the
+            healthy numbers of the data README). The chordae are just taut when their
+            insertions sit there (rest length = distance from the tip).
         strut_points: anterior strut insertions as ``(tau, r)``: fraction across the leaflet
             (from the posteromedial commissure) and fraction of the local height from the
             annulus.
@@ -193,6 +204,7 @@ def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0
                   papillary_depth=papillary_depth, papillary_inset=papillary_inset,
                   size=size, free_edge_size=free_edge_size, refine_distance=refine_distance,
                   chordae_spacing=chordae_spacing, annulus_modes=annulus_modes,
+                  coaptation_offset=coaptation_offset, closed_depth=closed_depth,
                   ruling_smoothing=ruling_smoothing)
     params = {k: (int(v) if k == "annulus_modes" else float(v)) for k, v in params.items()}
     params["strut_points"] = [[float(a) for a in p] for p in strut_points]
@@ -335,6 +347,7 @@ def _build_on_root(p: dict, annulus, papillary, anterior_direction):
               "insertion_points": to_global(ins["points"]),
               "insertion_leaflet": ins["leaflet"], "insertion_family": ins["family"],
               "insertion_muscle": ins["muscle"], "insertion_tip": ins["tip"],
+              "insertion_closed": to_global(ins["closed"]),
               "axis": axis, "centre": centre, "frame": frame.copy(), "commissures": comm_pts,
               "annulus_curve": to_global(curve.x)}
     logger.info("valve: %d cells, %d vertices, min angle %.1f deg, %.2f s", len(cells),
@@ -715,8 +728,9 @@ def _remesh(gmsh, leaflets: dict, p: dict):
 def _insertions(points, cells, cell_values, edges, edge_values, leaflets, tips, muscle, p):
     """Marginal (free-edge vertices, every ~chordae_spacing) and strut/basal (belly vertices)
     insertion points, in the local frame; each with its muscle (by side) and nearest tip."""
-    out_pts, out_leaf, out_fam = [], [], []
+    out_pts, out_leaf, out_fam, out_closed = [], [], [], []
     boundary = np.unique(edges)
+    closed = _closure_design(leaflets, p)
     for name, lf in leaflets.items():
         value = LEAFLETS[name]
         fe = edges[edge_values == _GROUPS[f"free_edge_{name}"]]
@@ -731,6 +745,7 @@ def _insertions(points, cells, cell_values, edges, edge_values, leaflets, tips, 
             out_pts.append(xs[i])
             out_leaf.append(value)
             out_fam.append("marginal")
+            out_closed.append(closed(xs[i]))
         # belly points: nearest interior vertex of this leaflet
         family, where = ("strut", p["strut_points"]) if name == "anterior" else \
             ("basal", p["basal_points"])
@@ -741,6 +756,8 @@ def _insertions(points, cells, cell_values, edges, edge_values, leaflets, tips, 
             out_pts.append(points[k])
             out_leaf.append(value)
             out_fam.append(family)
+            foot = lf.point(tau, 0.0)
+            out_closed.append(foot + r * (closed(lf.point(tau, 1.0)) - foot))
     pts = np.array(out_pts)
     # muscle by side of the anteroposterior midline (y = 0); nearest tip of that muscle
     present = np.unique(muscle)
@@ -751,7 +768,33 @@ def _insertions(points, cells, cell_values, edges, edge_values, leaflets, tips, 
         cand = np.flatnonzero(muscle == mi)
         tip[i] = cand[np.argmin(np.linalg.norm(tips[cand] - x, axis=1))]
     return {"points": pts, "leaflet": np.array(out_leaf, dtype=np.int32),
-            "family": np.array(out_fam), "muscle": m, "tip": tip}
+            "family": np.array(out_fam), "muscle": m, "tip": tip,
+            "closed": np.array(out_closed)}
+
+
+def _closure_design(leaflets: dict, p: dict):
+    """Where a free-edge point sits in the designed closed valve (local frame): below the
+    coaptation curve, which runs from commissure to commissure, bowed toward the posterior
+    annulus by ``coaptation_offset`` x the posterior half-diameter at the middle and sunk by
+    ``closed_depth`` (tenting height + coaptation length) below the commissures' chord there,
+    both tapering as ``4u(1 - u)`` to the commissures. Returns a function of a local point."""
+    lf = leaflets["anterior"]
+    c0, c1 = lf.curve.point(lf.s0), lf.curve.point(lf.s1)
+    post_mid = leaflets["posterior"].point(0.5, 0.0)
+    axis_xy = (c1 - c0)[:2]
+    length2 = float(axis_xy @ axis_xy)
+    mid = 0.5 * (c0 + c1)
+    toward_post = post_mid[:2] - mid[:2]
+    toward_post -= (toward_post @ axis_xy) / length2 * axis_xy
+
+    def closed(x):
+        u = float(np.clip((np.asarray(x)[:2] - c0[:2]) @ axis_xy / length2, 0.0, 1.0))
+        bump = 4.0 * u * (1.0 - u)
+        xy = c0[:2] + u * axis_xy + p["coaptation_offset"] * bump * toward_post
+        z = c0[2] + u * (c1[2] - c0[2]) - p["closed_depth"] * bump
+        return np.array([xy[0], xy[1], z])
+
+    return closed
 
 
 def _chain(edges: np.ndarray) -> np.ndarray:

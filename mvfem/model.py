@@ -28,6 +28,9 @@ log = logging.getLogger(__name__)
 #: cap on the exponent of the Fung laws in simulations: e^200 c0 is ~1e89 Pa, far beyond any
 #: tissue state, so only wild Newton iterates meet it (and a final state that does is rejected)
 MAX_EXPONENT = 200.0
+#: default bending modulus of valve leaflets (Pa): a thin-shell stiffness that suppresses
+#: mesh-scale wrinkles where the membrane is compressed (forms/bending.py)
+VALVE_BENDING_MODULUS = 100e3
 
 
 @dataclass
@@ -75,6 +78,11 @@ class Model:
     quadrature_degree: int
     length_scale: float
     info: dict = field(default_factory=dict)
+    view: object = None          # mvfem.nodal.NodalView when there are point terms
+    chordae: object = None       # mvfem.chordae.Chordae
+    contact: object = None       # mvfem.contact.Contact
+    point_terms: object = None   # mvfem.nodal.PointTerms
+    phi: object = None           # Laplace coordinate of a valve (0 annulus, 1 free edge)
 
     @property
     def comm(self):
@@ -96,6 +104,8 @@ def default_size(m: dict) -> float:
         return m["radius"] / 8
     if gen == "tube":
         return m["radius"] / 8
+    if gen == "valve":
+        return 1.0
     return 0.0
 
 
@@ -116,6 +126,8 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
         return meshes.tube(comm, radius=m["radius"], length=m["length"], size=size)
     if gen == "octasphere":
         return meshes.octasphere(comm, radius=m["radius"], refinements=m["refinements"])
+    if gen == "valve":
+        return _valve(scene, comm, size)
     if gen == "file":
         try:
             raw = meshes.read_surface(m["file"])
@@ -127,6 +139,33 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
         return meshes.SurfaceMesh(mesh=msh, cell_tags=tags, facet_tags=None, names=names,
                                   info={"generator": "file", "file": m["file"]})
     raise InputError(f"{scene.source}: mesh.generator: {gen!r} is not available")
+
+
+def _valve(scene: Scene, comm, size: float):
+    from mvfem.meshes.valve import valve
+
+    m = scene["mesh"]
+    kw = {k: m[k] for k in ("ap_diameter", "commissural_diameter", "saddle_height",
+                            "anterior_height", "posterior_height", "papillary_depth",
+                            "free_edge_size", "chordae_spacing", "anterior_direction")
+          if m[k] is not None}
+    for key in ("annulus", "papillary"):
+        if m[key] is not None:
+            kw[key] = _read_points(m[key])
+    if "free_edge_size" not in kw:
+        kw["free_edge_size"] = size / 2
+    try:
+        return valve(comm, size=size, **kw)
+    except ValueError as e:
+        raise InputError(f"{scene.source}: mesh: {e}") from None
+
+
+def _read_points(path: str) -> np.ndarray:
+    """x, y, z rows of a CSV file (an optional header line is skipped)."""
+    try:
+        return np.loadtxt(path, delimiter=",", ndmin=2)
+    except ValueError:
+        return np.loadtxt(path, delimiter=",", ndmin=2, skiprows=1)
 
 
 def _centre(msh, given) -> np.ndarray:
@@ -144,10 +183,26 @@ def _tangent_unit(vec, n0):
     return t / ufl.sqrt(ufl.dot(t, t))
 
 
-def _directions(msh, fibres: dict):
-    """(fibre, radial, circumferential) unit tangent fields of the reference surface (UFL)."""
+def _directions(msh, fibres: dict, phi=None):
+    """(fibre, radial, circumferential) unit tangent fields of the reference surface (UFL).
+
+    With ``phi`` (a valve's Laplace coordinate, :mod:`mvfem.meshes.fibres`) radial is its
+    gradient direction; otherwise radial and circumferential are taken about ``fibres.axis``
+    through ``fibres.centre``.
+    """
     x = ufl.SpatialCoordinate(msh)
     n0 = unit_normal(ufl.Jacobian(msh))
+    if phi is not None:
+        from mvfem.meshes.fibres import radial_circumferential
+
+        radial, circ = radial_circumferential(phi, n0)
+        direction = fibres["direction"]
+        if direction == "circumferential":
+            return circ, radial, circ
+        if direction == "radial":
+            return radial, radial, circ
+        return _tangent_unit(fem.Constant(msh, np.asarray(direction, dtype=float)), n0), \
+            radial, circ
     axis = np.asarray(fibres["axis"], dtype=float)
     # Constants, not literals: the generated code is then the same for every mesh (JIT cache)
     axis = fem.Constant(msh, axis / np.linalg.norm(axis))
@@ -189,7 +244,18 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
     u = fem.Function(V, name="displacement")
     v = ufl.TestFunction(V)
 
-    fibre, radial, circ = _directions(msh, scene["fibres"])
+    annulus = _annulus_facets(surface)
+    phi = None
+    if annulus is not None:
+        from mvfem.meshes.fibres import boundary_split, laplace_coordinate
+
+        vertices = dmesh.compute_incident_entities(msh, annulus, msh.topology.dim - 1, 0)
+        ann, free_edge = boundary_split(msh, vertices)
+        try:
+            phi = laplace_coordinate(msh, ann, free_edge)
+        except ValueError as e:
+            raise InputError(f"{scene.source}: mesh: {e}") from None
+    fibre, radial, circ = _directions(msh, scene["fibres"], phi)
     kin = membrane(u, fibre)
     meta = {"quadrature_degree": q}
     tags = surface.cell_tags
@@ -206,6 +272,16 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
         regions.append(Region(r["label"] or "membrane", tag, r["law"], r.get("set", "custom"),
                               consts, h0, W, dx))
         energy = energy + h0 * W * dx
+
+    E_b = scene["bending"]["modulus"]
+    if E_b is None:
+        E_b = VALVE_BENDING_MODULUS if annulus is not None else 0.0
+    if E_b > 0:
+        from mvfem.forms.bending import hinge_energy
+
+        h_mean = float(np.mean([float(r.thickness.value) for r in regions]))
+        D = fem.Constant(msh, E_b * h_mean**3 / 12.0)
+        energy = energy + hinge_energy(u, D) * ufl.dS(domain=msh, metadata={"quadrature_degree": 1})
 
     load = scene["load"]
     pressure = fem.Constant(msh, 0.0)
@@ -232,14 +308,97 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
         bcs.append(fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), dofs, V))
     elif scene["boundary"]["clamp"] == "rigid":
         bcs += _rigid_pins(V, scene)
+    elif scene["boundary"]["clamp"] == "annulus":
+        if annulus is None or comm.allreduce(len(annulus), op=MPI.SUM) == 0:
+            raise InputError(f"{scene.source}: boundary.clamp: \"annulus\" needs a valve mesh "
+                             "(generator = \"valve\", or a file with point data 'annulus')")
+        dofs = fem.locate_dofs_topological(V, 1, annulus)
+        bcs.append(fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), dofs, V))
 
     p_target = float(load["pressure"])
     stab_scale = s["stabilisation"] * max(abs(p_target), 1.0) / L
-    return Model(scene=scene, surface=surface, mesh=msh, V=V, u=u, kin=kin,
-                 regions=regions, fibre=fibre, radial=radial, circumferential=circ,
-                 pressure=pressure, p_target=p_target, stabiliser_scale=stab_scale,
-                 energy=energy, residual=residual, load_form=p_term, bcs=bcs,
-                 quadrature_degree=q, length_scale=L, info={"area_mm2": area})
+    model = Model(scene=scene, surface=surface, mesh=msh, V=V, u=u, kin=kin,
+                  regions=regions, fibre=fibre, radial=radial, circumferential=circ,
+                  pressure=pressure, p_target=p_target, stabiliser_scale=stab_scale,
+                  energy=energy, residual=residual, load_form=p_term, bcs=bcs,
+                  quadrature_degree=q, length_scale=L, info={"area_mm2": area}, phi=phi)
+    _point_terms(model)
+    return model
+
+
+def _annulus_facets(surface):
+    """Local annulus edges of a valve surface, or None for a surface without an annulus."""
+    names = getattr(surface, "names", {}) or {}
+    if "annulus" not in names or surface.facet_tags is None:
+        return None
+    return surface.facets("annulus")
+
+
+def _has_chordae(surface) -> bool:
+    return len(getattr(surface, "insertion_points", ())) > 0
+
+
+def _point_terms(model: Model) -> None:
+    """Chordae and contact, when the scene asks for them and the mesh is a valve."""
+    from mvfem.chordae import Chordae
+    from mvfem.contact import Contact
+    from mvfem.nodal import NodalView, PointTerms
+
+    scene, surface, comm = model.scene, model.surface, model.comm
+    valve = _annulus_facets(surface) is not None
+    want_chordae = scene["chordae"]["enabled"] and _has_chordae(surface)
+    want_contact = scene["contact"]["enabled"] and valve
+    if not (want_chordae or want_contact):
+        return
+    try:
+        view = NodalView(model.V, model.bcs, surface.cell_tags)
+    except ValueError as e:
+        raise InputError(f"{scene.source}: solver.degree: {e}") from None
+    terms = []
+    if want_chordae:
+        model.chordae = _chordae(scene, surface, view)
+        terms.append(model.chordae)
+    if want_contact:
+        c = scene["contact"]
+        max_edge = comm.bcast(float(np.linalg.norm(
+            view.X[view.cells[:, [0, 1, 2]]] - view.X[view.cells[:, [1, 2, 0]]], axis=2)
+            .max(initial=0.0)) if comm.rank == 0 else None, root=0)
+        delta = c["thickness"]
+        k = c["stiffness"] or 50.0 * max(abs(model.p_target), 1e3) / delta
+        model.contact = Contact(view, delta, k, search=c["search"] or max(2 * delta, max_edge),
+                                exclusion=c["exclusion"] or max(3 * max_edge, 4 * delta))
+        terms.append(model.contact)
+    model.view = view
+    model.point_terms = PointTerms(view, terms)
+
+
+def _chordae(scene: Scene, surface, view):
+    """Tethers of the valve's chordae insertions, with the scene's family parameters."""
+    from mvfem.chordae import Chordae
+
+    fams = scene["chordae"]
+    names = {v: k for k, v in (surface.names or {}).items()}
+    if view.comm.rank != 0:
+        return Chordae(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0),
+                       np.zeros(0, dtype="<U8"))
+    node = view.node_of_point(surface.insertion_points)
+    anchor = surface.papillary_tips[surface.insertion_tip]
+    # imported trees: path length along the tree; generated valves: the length that makes the
+    # chord just taut with its insertion where the designed closed valve puts it
+    length = getattr(surface, "insertion_path_length", None)
+    if length is None or len(length) != len(node):
+        target = getattr(surface, "insertion_closed", None)
+        if target is None or len(target) != len(node):
+            target = surface.insertion_points
+        # never shorter than in the open valve, which is the stress-free reference state
+        length = np.maximum(np.linalg.norm(target - anchor, axis=1),
+                            np.linalg.norm(surface.insertion_points - anchor, axis=1))
+    family = np.asarray(surface.insertion_family)
+    factor = np.array([fams[f]["length_factor"] for f in family])
+    rest = factor * length
+    EA = np.array([fams[f]["modulus"] * fams[f]["area"] for f in family])  # Pa mm^2
+    leaflet = np.array([names.get(int(t), str(t)) for t in surface.insertion_leaflet])
+    return Chordae(node, anchor, rest, EA / rest, family, leaflet)
 
 
 def _rigid_pins(V, scene: Scene) -> list:

@@ -212,6 +212,73 @@ def write_xdmf(model, fields: dict, path) -> None:
             f.write_function(fn)
 
 
+def _point_outputs(model) -> dict:
+    """Contact penetration and valve metrics (collective; the same dict on every rank)."""
+    from mvfem.metrics import valve_metrics
+
+    if model.view is None:
+        return {}
+    comm = model.comm
+    n_owned = model.V.dofmap.index_map.size_local * 3
+    x = model.point_terms.positions(model.u.x.array[:n_owned])
+    out = None
+    if comm.rank == 0:
+        out = {}
+        if model.contact is not None:
+            pen = model.contact.penetration(x)
+            out["max_penetration_mm"] = pen["max_penetration_mm"]
+            out["contact"] = {"thickness_mm": model.contact.thickness,
+                              "stiffness_Pa_per_mm": model.contact.stiffness,
+                              "crossings": pen["crossings"], "active_pairs": pen["active_pairs"],
+                              "pair_searches": model.contact.refreshes}
+        if getattr(model.surface, "annulus_curve", None) is not None:
+            v = valve_metrics(model, x)
+            v.pop("_coapting")
+            out["valve"] = v
+    out = comm.bcast(out, root=0)
+    out["_x"] = x
+    return out
+
+
+def write_chordae_csv(model, x, path) -> None:
+    """One row per chord: family, leaflet, insertion node, papillary point, lengths, force."""
+    import csv
+
+    import numpy as np
+
+    ch = model.chordae
+    length = np.linalg.norm(x[ch.node] - ch.anchor, axis=1)
+    force = ch.force_N(x)
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["chord", "family", "leaflet", "node", "papillary_x_mm", "papillary_y_mm",
+                    "papillary_z_mm", "rest_length_mm", "length_mm", "force_N"])
+        for i in range(len(ch)):
+            w.writerow([i, ch.family[i], ch.leaflet[i] if len(ch.leaflet) else "",
+                        int(ch.node[i]), *(f"{a:.6g}" for a in ch.anchor[i]),
+                        f"{ch.rest_length[i]:.6g}", f"{length[i]:.6g}", f"{force[i]:.6g}"])
+
+
+def _write_maps(model, fields, x, out) -> None:
+    """PNG maps of radial strain and stress (log10 Pa) on the closed valve (rank 0)."""
+    import numpy as np
+
+    from mvfem.fields import per_cell
+
+    if model.view is None or getattr(model.surface, "annulus_curve", None) is None:
+        return
+    msh = model.mesh
+    n = msh.topology.index_map(2).size_local
+    parts = msh.comm.gather({k: per_cell(fields[k])[:n] for k in
+                             ("radial_almansi_strain", "radial_cauchy_stress_Pa")}, root=0)
+    if msh.comm.rank != 0:
+        return
+    from mvfem.maps import valve_maps
+
+    values = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    valve_maps(x, model.view.cells, model.view.cell_tag, values, model.surface, out)
+
+
 def write_outputs(result, problem, write: bool = True) -> None:
     """Complete ``result.summary`` (displacement, regions, probes, timing) and write files."""
     import time
@@ -229,6 +296,8 @@ def write_outputs(result, problem, write: bool = True) -> None:
     s["max_penetration_mm"] = None  # no contact in this scene
     s["probes"] = probe_displacements(model, model.scene["output"]["probes"])
     fields = cell_fields(model)
+    point = _point_outputs(model)
+    s.update({k: v for k, v in point.items() if not k.startswith("_")})
     per_region = _gather_region_values(model, fields)
     regions = {}
     if comm.rank == 0:
@@ -246,6 +315,9 @@ def write_outputs(result, problem, write: bool = True) -> None:
     if write:
         if model.scene["output"]["xdmf"]:
             write_xdmf(model, fields, result.out / "fields.xdmf")
+        if comm.rank == 0 and model.chordae is not None and len(model.chordae):
+            write_chordae_csv(model, point["_x"], result.out / "chordae.csv")
+        _write_maps(model, fields, point.get("_x"), result.out)
     timing["output_s"] = time.perf_counter() - t0
     s["wall_time_s"] += timing["output_s"]
     timing["other_s"] = max(s["wall_time_s"] - timing["assembly_s"] - timing["linear_solve_s"]

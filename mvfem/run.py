@@ -28,6 +28,15 @@ __all__ = ["solve", "Result", "check_converged"]
 
 log = logging.getLogger(__name__)
 _ids = itertools.count()
+#: a load step has settled when the proximal force is below this fraction of the pressure load
+SETTLE = 0.05
+#: pseudo-time steps per load step, and how far the proximal weight may grow
+MAX_SETTLE = 60
+MAX_STIFFENING = 1e4
+#: the proximal weight may shrink to this fraction of the scene's stabilisation while a slack
+#: structure moves freely (pseudo-time steps grow)
+MIN_WEIGHT = 1e-2
+
 
 
 @dataclass
@@ -94,21 +103,18 @@ class _Progress:
             log.debug(msg)
 
 
-def _equilibrium_check(model: Model) -> tuple[float, float]:
-    """(||R(u)||, ||f_p||): residual of the problem as posed (no stabiliser), free dofs only."""
+def _load_norm(model: Model) -> float:
+    """||f_p||: the pressure load at the current pressure, free dofs only."""
     from dolfinx import fem
     from dolfinx.fem import petsc as fpetsc
     from petsc4py import PETSc
 
-    def norm(form) -> float:
-        b = fpetsc.assemble_vector(fem.form(form))
-        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        fpetsc.set_bc(b, model.bcs, scale=0.0)
-        n = b.norm()
-        b.destroy()
-        return n
-
-    return norm(model.residual), norm(model.load_form)
+    b = fpetsc.assemble_vector(fem.form(model.load_form))
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    fpetsc.set_bc(b, model.bcs, scale=0.0)
+    n = b.norm()
+    b.destroy()
+    return n
 
 
 def _max_exponent(model: Model) -> float:
@@ -186,14 +192,16 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     t_build = time.perf_counter() - t_start
     s = scene["solver"]
     model.pressure.value = model.p_target
-    _, load_norm = _equilibrium_check(model)
+    load_norm = _load_norm(model)
     model.pressure.value = 0.0
     problem = SNESProblem(model.residual, model.u, model.bcs, prefix=f"mvfem{next(_ids)}_",
-                          options=_petsc_options(model, load_norm))
+                          options=_petsc_options(model, load_norm),
+                          point_terms=model.point_terms)
     u = model.u
     n_owned = u.vector.getLocalSize()
     centre = u.vector.copy()
-    problem.set_proximal(model.stabiliser_scale, weights=lumped_mass(model), centre=centre)
+    mass = lumped_mass(model)
+    problem.set_proximal(model.stabiliser_scale, weights=mass, centre=centre)
     ramp = _RAMPS[s["ramp"]]
     last_converged = [u.x.array[:n_owned].copy()]  # the proximal centre
 
@@ -207,24 +215,87 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         u.x.array[:] = a
         u.x.scatter_forward()
 
+    contact = model.contact
+
+    def positions():  # collective; (N, 3) nodal positions on rank 0
+        return model.point_terms.positions(u.x.array[:n_owned])
+
+    if contact is not None:
+        contact.remember(positions())
+
     def step_solve() -> SolveInfo:
         centre.array[:] = last_converged[0]
         if not np.isfinite(problem.residual_norm()):  # a predictor that overshoots into overflow
             u.x.array[:n_owned] = last_converged[0]
             u.x.scatter_forward()
-        return problem.solve()
+        info = problem.solve()
+        if info.converged and contact is not None:
+            # a node on the other side of a triangle than before the step passed through it
+            crossed = comm.bcast(contact.crossings(positions()), root=0)
+            if crossed:
+                info = SolveInfo(False, info.iterations, f"CONTACT_CROSSING ({crossed} nodes)",
+                                 info.residual_norm, info.assembly_s, info.solve_s)
+        return info
+
+    accepted = [last_converged[0].copy()]  # the load stepper's last accepted state
+    k_min = model.stabiliser_scale * MIN_WEIGHT
+    k_now = [model.stabiliser_scale]
+    work = mass.duplicate()
+
+    def prox_norm(k: float) -> float:  # ||k M (u - centre)||: the force of the proximal term
+        u.vector.copy(work)
+        work.axpy(-1.0, centre)
+        work.pointwiseMult(work, mass)
+        return k * work.norm()
+
+    def settle_solve() -> SolveInfo:
+        """A load step as pseudo-time: proximal solves, each centred on the previous one,
+        until the proximal force is below SETTLE x the current pressure load. The weight
+        grows fourfold after a failed solve and halves after easy ones (down to MIN_WEIGHT x
+        the scene's stabilisation). A slack structure (a valve swinging shut) thus moves at the
+        pace its Newton iterations allow, and the load grows only once it has settled."""
+        its, t_asm, t_sol = 0, 0.0, 0.0
+        last_converged[0] = accepted[0].copy()
+        f_now = abs(float(model.pressure.value)) / max(abs(model.p_target), 1e-300) * load_norm
+        for inner in range(MAX_SETTLE):
+            k = k_now[0]
+            problem.set_proximal(k)
+            start = u.x.array[:n_owned].copy()
+            info = step_solve()
+            its += info.iterations
+            t_asm += info.assembly_s
+            t_sol += info.solve_s
+            if not info.converged:
+                if k >= model.stabiliser_scale * MAX_STIFFENING:
+                    return SolveInfo(False, its, info.reason, info.residual_norm, t_asm, t_sol)
+                k_now[0] = 4 * k
+                u.x.array[:n_owned] = start if inner else last_converged[0]
+                u.x.scatter_forward()
+                continue
+            if prox_norm(k) <= SETTLE * f_now:
+                if info.iterations <= 3:
+                    k_now[0] = max(k / 2, k_min)
+                return SolveInfo(True, its, info.reason, info.residual_norm, t_asm, t_sol)
+            if info.iterations <= 5:
+                k_now[0] = max(k / 2, k_min)
+            last_converged[0] = u.x.array[:n_owned].copy()  # next solve centred here
+        return SolveInfo(False, its, f"NOT_SETTLED after {MAX_SETTLE} pseudo-time steps",
+                         info.residual_norm, t_asm, t_sol)
 
     progress_line = _Progress(model, progress)
 
     def on_step(rec: StepRecord, stepper: LoadStepper) -> None:
         if rec.converged:
             last_converged[0] = u.x.array[:n_owned].copy()
+            accepted[0] = last_converged[0].copy()
+            if contact is not None:  # sides of the pairs at the accepted state
+                contact.remember(positions())
         progress_line(rec, stepper)
 
     # intermediate states need not be tight: the final state is (see _remove_stabiliser)
     tight_atol = s["tolerance"] * load_norm
     problem.set_tolerances(atol=max(tight_atol, s["step_tolerance"] * load_norm))
-    stepper = LoadStepper(set_load, step_solve, get_state, set_state,
+    stepper = LoadStepper(set_load, settle_solve, get_state, set_state,
                           first_step=s["first_step"], min_step=s["min_step"],
                           max_steps=s["max_steps"], on_step=on_step)
     if comm.rank == 0 and progress:
@@ -240,7 +311,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
                                                    set_state, last_converged, n_owned,
                                                    model.stabiliser_scale)
     problem.set_proximal(0.0)
-    r_norm, f_norm = _equilibrium_check(model)
+    r_norm, f_norm = problem.residual_norm(), _load_norm(model)
     rel = r_norm / f_norm if f_norm > 0 else r_norm
     q_max = _max_exponent(model)
     if final_ok and q_max >= MAX_EXPONENT:
@@ -252,7 +323,8 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
                        f"{s['tolerance']:g}")
     wall = time.perf_counter() - t_start
     timing = {"assembly_s": problem.assembly_s, "linear_solve_s": problem.solve_s,
-              "contact_s": 0.0, "build_s": t_build}
+              "contact_s": (model.point_terms.time_s if model.point_terms else 0.0) +
+              (model.contact.time_s if contact is not None else 0.0), "build_s": t_build}
     if comm.rank == 0 and not converged:
         log.warning(f"solver stopped short at p = {t_reached * model.p_target / 1e3:.4g} kPa "
                     f"({stop_reason}); the last converged state is kept")

