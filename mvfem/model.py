@@ -340,7 +340,6 @@ def _has_chordae(surface) -> bool:
 
 def _point_terms(model: Model) -> None:
     """Chordae and contact, when the scene asks for them and the mesh is a valve."""
-    from mvfem.chordae import Chordae
     from mvfem.contact import Contact
     from mvfem.nodal import NodalView, PointTerms
 

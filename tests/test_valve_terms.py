@@ -178,3 +178,72 @@ def test_contact_sides_come_from_the_remembered_state():
     x[len(x) // 2:, 2] -= 0.5
     assert c.crossings(x) > 0
     assert np.all(c.gaps(x)[c._inside] < 0)
+
+
+@pytest.mark.mpi
+def test_laplace_coordinate_on_the_valve_runs_from_annulus_to_free_edge():
+    """phi is 0 on the annulus and 1 on the free edges; its gradient (the radial direction)
+    points from the annulus toward the free edge, i.e. down into the ventricle (-z) in the
+    belly of both leaflets, and the circumferential direction is a unit tangent normal to it."""
+    import ufl
+    from dolfinx import mesh as dmesh
+    from mpi4py import MPI
+
+    from mvfem.fields import cell_values
+    from mvfem.forms import unit_normal
+    from mvfem.meshes.fibres import boundary_split, laplace_coordinate, radial_circumferential
+    from mvfem.meshes.valve import valve
+
+    v = valve(MPI.COMM_WORLD, size=2.0, free_edge_size=1.0)
+    msh = v.mesh
+    verts = dmesh.compute_incident_entities(msh, v.facets("annulus"), 1, 0)
+    ann, free = boundary_split(msh, verts)
+    phi = laplace_coordinate(msh, ann, free)
+    assert phi.x.array.min() >= -1e-12 and phi.x.array.max() <= 1 + 1e-12
+    n0 = unit_normal(ufl.Jacobian(msh))
+    radial, circ = radial_circumferential(phi, n0)
+    rz = cell_values(radial[2], msh)
+    dot = cell_values(ufl.dot(radial, circ), msh)
+    norm = cell_values(ufl.dot(circ, circ), msh)
+    tang = cell_values(ufl.dot(radial, n0), msh)
+    comm = msh.comm
+    assert comm.allreduce(float(np.abs(dot).max(initial=0)), op=MPI.MAX) < 1e-12
+    assert comm.allreduce(float(np.abs(norm - 1).max(initial=0)), op=MPI.MAX) < 1e-12
+    assert comm.allreduce(float(np.abs(tang).max(initial=0)), op=MPI.MAX) < 1e-10
+    down = comm.allreduce(int(np.sum(rz < 0)), op=MPI.SUM)
+    total = comm.allreduce(len(rz), op=MPI.SUM)
+    assert down / total > 0.9
+
+
+_VALVE = {"mesh": {"generator": "valve"},
+          "region": [{"label": "anterior", "law": "mny", "params": "MNY-mean"},
+                     {"label": "posterior", "law": "mny", "params": "MNY-mean",
+                      "leaflet": "posterior"}]}
+
+
+@pytest.mark.parametrize("change, key", [
+    ({"chordae.marginal.length_factor": 0}, "chordae.marginal.length_factor"),
+    ({"chordae.basal.stiffness": 1}, "chordae.basal.stiffness"),
+    ({"contact.thickness": "-1 mm"}, "contact.thickness"),
+    ({"contact.stiffness": "3 kPa"}, "contact.stiffness"),
+    ({"bending.modulus": -5}, "bending.modulus"),
+    ({"mesh.annulus": "no_such.csv"}, "mesh.annulus"),
+    ({"mesh.generator": "disk", "mesh.ap_diameter": 30}, "mesh.ap_diameter"),
+])
+def test_valve_scene_keys_are_checked(change, key):
+    import mvfem
+    from mvfem.errors import InputError
+
+    scene = mvfem.load_scene(_VALVE)
+    with pytest.raises(InputError, match=key.replace(".", r"\.")):
+        scene.with_changes(change)
+
+
+def test_valve_scene_defaults():
+    import mvfem
+
+    s = mvfem.load_scene(_VALVE)
+    assert s["boundary"]["clamp"] == "annulus"
+    assert s["chordae"]["marginal"] == {"length_factor": 1.0, "modulus": 40e6, "area": 0.35}
+    assert s["contact"]["enabled"] and s["contact"]["thickness"] == 0.5
+    assert s.with_changes({"contact.stiffness": "2 MPa/mm"})["contact"]["stiffness"] == 2e6
