@@ -194,9 +194,12 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     model.pressure.value = model.p_target
     load_norm = _load_norm(model)
     model.pressure.value = 0.0
-    problem = SNESProblem(model.residual, model.u, model.bcs, prefix=f"mvfem{next(_ids)}_",
-                          options=_petsc_options(model, load_norm),
-                          point_terms=model.point_terms)
+    try:
+        problem = SNESProblem(model.residual, model.u, model.bcs, prefix=f"mvfem{next(_ids)}_",
+                              options=_petsc_options(model, load_norm),
+                              point_terms=model.point_terms)
+    except ValueError as e:
+        raise InputError(f"{scene.source}: solver.petsc_options: {e}") from None
     u = model.u
     n_owned = u.vector.getLocalSize()
     centre = u.vector.copy()

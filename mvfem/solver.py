@@ -111,9 +111,13 @@ class SNESProblem:
             opts[k] = v
         self.snes.setFunction(self._residual, self.b)
         self.snes.setJacobian(self._jacobian, self.A)
-        self.snes.setFromOptions()
-        self.snes.getKSP().setFromOptions()
-        self.snes.getKSP().getPC().setFromOptions()
+        try:
+            self.snes.setFromOptions()
+            self.snes.getKSP().setFromOptions()
+            self.snes.getKSP().getPC().setFromOptions()
+        except PETSc.Error as e:
+            raise ValueError(f"PETSc rejected the options {options or {}} (error code "
+                             f"{e.ierr})") from None
 
     def _update_u(self, x: PETSc.Vec) -> None:
         x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)

@@ -247,3 +247,16 @@ def test_valve_scene_defaults():
     assert s["chordae"]["marginal"] == {"length_factor": 1.0, "modulus": 40e6, "area": 0.35}
     assert s["contact"]["enabled"] and s["contact"]["thickness"] == 0.5
     assert s.with_changes({"contact.stiffness": "2 MPa/mm"})["contact"]["stiffness"] == 2e6
+
+
+def test_rejected_petsc_option_is_one_line_exit_2(tmp_path, capsys):
+    from mvfem.cli import main
+
+    scene = tmp_path / "disk.toml"
+    scene.write_text('[mesh]\ngenerator = "disk"\nsize = 2.0\n[[region]]\nlaw = "neo-hookean"\n'
+                     'params = {mu = 1e5}\nthickness = 1.0\n[load]\npressure = 100\n')
+    code = main(["run", str(scene), "--out", str(tmp_path / "out"),
+                 "--set", "solver.petsc_options.snes_monitor=true"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and "solver.petsc_options" in err[0] and "Traceback" not in err[0]
