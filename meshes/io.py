@@ -14,7 +14,8 @@ from io import StringIO
 
 import numpy as np
 
-__all__ = ["RawSurface", "read_surface", "write_surface", "to_dolfinx", "mesh_from_arrays"]
+__all__ = ["RawSurface", "read_surface", "write_surface", "to_dolfinx", "mesh_from_arrays",
+           "read_points"]
 
 # gmsh/VTK node order of a 6-node triangle (v0 v1 v2 m01 m12 m20) -> dolfinx's
 # (v0 v1 v2, then the midpoint of the edge opposite v0, v1, v2: m12 m20 m01)
@@ -40,6 +41,26 @@ class RawSurface:
     cell_data: dict = field(default_factory=dict)
     lines: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     line_data: dict = field(default_factory=dict)
+
+
+def read_points(path: str | os.PathLike) -> np.ndarray:
+    """(N, 3) points from a CSV file of x, y, z rows (``#`` comments or one header line).
+
+    Raises:
+        ValueError: the file is not such a CSV, or holds non-finite values.
+    """
+    try:
+        pts = np.loadtxt(path, delimiter=",", ndmin=2, comments="#")
+    except ValueError:
+        try:
+            pts = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=1)
+        except ValueError as e:
+            raise ValueError(f"{path}: not a CSV of x, y, z rows ({e})") from None
+    if pts.shape[1] != 3:
+        raise ValueError(f"{path}: expected x, y, z columns, got {pts.shape[1]}")
+    if not np.all(np.isfinite(pts)):
+        raise ValueError(f"{path}: non-finite values")
+    return pts
 
 
 def read_surface(path: str | os.PathLike) -> RawSurface:

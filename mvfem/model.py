@@ -142,6 +142,7 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
 
 
 def _valve(scene: Scene, comm, size: float):
+    from mvfem.meshes.io import read_points
     from mvfem.meshes.valve import valve
 
     m = scene["mesh"]
@@ -151,21 +152,13 @@ def _valve(scene: Scene, comm, size: float):
           if m[k] is not None}
     for key in ("annulus", "papillary"):
         if m[key] is not None:
-            kw[key] = _read_points(m[key])
+            kw[key] = read_points(m[key])
     if "free_edge_size" not in kw:
         kw["free_edge_size"] = size / 2
     try:
         return valve(comm, size=size, **kw)
     except ValueError as e:
         raise InputError(f"{scene.source}: mesh: {e}") from None
-
-
-def _read_points(path: str) -> np.ndarray:
-    """x, y, z rows of a CSV file (an optional header line is skipped)."""
-    try:
-        return np.loadtxt(path, delimiter=",", ndmin=2)
-    except ValueError:
-        return np.loadtxt(path, delimiter=",", ndmin=2, skiprows=1)
 
 
 def _centre(msh, given) -> np.ndarray:

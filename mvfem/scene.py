@@ -295,7 +295,7 @@ def _check_chordae(ch: dict) -> None:
 
 
 def _check_valve_files(mesh: dict, base_dir: Path) -> None:
-    import numpy as np
+    from mvfem.meshes.io import read_points
 
     for key in ("annulus", "papillary"):
         if mesh[key] is None:
@@ -307,14 +307,9 @@ def _check_valve_files(mesh: dict, base_dir: Path) -> None:
         if not p.is_file():
             raise _Bad(f"mesh.{key}", f"no such file: {p}")
         try:
-            pts = np.loadtxt(p, delimiter=",", ndmin=2, comments="#")
-        except ValueError:
-            try:
-                pts = np.loadtxt(p, delimiter=",", ndmin=2, skiprows=1)
-            except ValueError as e:
-                raise _Bad(f"mesh.{key}", f"{p}: not a CSV of x, y, z rows ({e})") from None
-        if pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
-            raise _Bad(f"mesh.{key}", f"{p}: expected finite x, y, z columns, got {pts.shape[1]}")
+            read_points(p)
+        except ValueError as e:
+            raise _Bad(f"mesh.{key}", str(e)) from None
         mesh[key] = str(p)
 
 
