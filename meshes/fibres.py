@@ -62,25 +62,12 @@ def laplace_coordinate(msh, annulus_facets: np.ndarray, free_edge_facets: np.nda
     one = np.setdiff1d(one, zero)  # the commissures belong to the annulus
     bcs = [fem.dirichletbc(PETSc.ScalarType(0.0), zero, V),
            fem.dirichletbc(PETSc.ScalarType(1.0), one, V)]
-    a = fem.form(ufl.inner(ufl.grad(phi), ufl.grad(psi)) * ufl.dx)
-    L = fem.form(fem.Constant(msh, PETSc.ScalarType(0.0)) * psi * ufl.dx)
-    A = fpetsc.assemble_matrix(a, bcs=bcs)
-    A.assemble()
-    b = fpetsc.assemble_vector(L)
-    fpetsc.apply_lifting(b, [a], bcs=[bcs])
-    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-    fpetsc.set_bc(b, bcs)
-    ksp = PETSc.KSP().create(comm)
-    ksp.setOperators(A)
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType("lu")
-    pc.setFactorSolverType("mumps")
-    out = fem.Function(V, name="radial_coordinate")
-    ksp.solve(b, out.vector)
-    out.x.scatter_forward()
-    for obj in (ksp, A, b):
-        obj.destroy()
+    a = ufl.inner(ufl.grad(phi), ufl.grad(psi)) * ufl.dx
+    L = fem.Constant(msh, PETSc.ScalarType(0.0)) * psi * ufl.dx
+    problem = fpetsc.LinearProblem(a, L, bcs=bcs, petsc_options={
+        "ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"})
+    out = problem.solve()
+    out.name = "radial_coordinate"
     return out
 
 
