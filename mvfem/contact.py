@@ -83,19 +83,20 @@ class Contact:
         view: the global node view.
         thickness: contact thickness ``delta``, mm (surfaces are kept this far apart).
         stiffness: penalty ``k``, Pa/mm.
-        search: pairs are kept for nodes within this distance of a triangle, mm.
+        search: pairs are kept for nodes within this distance of a triangle, mm (default
+            the larger of 2 ``thickness`` and the longest reference edge).
         exclusion: node and triangle closer than this in the open (reference) surface never
-            pair (they are neighbours on one sheet), mm.
+            pair (they are neighbours on one sheet), mm (default the larger of 3 longest edges
+            and 4 ``thickness``).
         onset: rounding of the penalty onset, mm.
     """
 
-    def __init__(self, view: NodalView, thickness: float, stiffness: float, search: float,
-                 exclusion: float, onset: float | None = None):
+    def __init__(self, view: NodalView, thickness: float, stiffness: float,
+                 search: float | None = None, exclusion: float | None = None,
+                 onset: float | None = None):
         self.view = view
         self.thickness = float(thickness)
         self.stiffness = float(stiffness)
-        self.search = float(search)
-        self.exclusion = float(exclusion)
         self.onset = float(onset if onset is not None else thickness / 4)
         self.refreshes = 0
         self.time_s = 0.0
@@ -108,6 +109,11 @@ class Contact:
         else:
             self.slaves = np.zeros(0, dtype=np.int64)
             self._max_edge = 0.0
+        # only rank 0 searches, so the defaults need not agree across ranks
+        self.search = float(search if search is not None
+                            else max(2 * self.thickness, self._max_edge))
+        self.exclusion = float(exclusion if exclusion is not None
+                               else max(3 * self._max_edge, 4 * self.thickness))
         self._empty()
         n = len(view.X)
         self._mem_sigma = np.zeros(n)
@@ -235,15 +241,6 @@ class Contact:
         return {"max_penetration_mm": float(max(0.0, (self.thickness - g).max())),
                 "crossings": self.crossings(x),
                 "active_pairs": int(np.sum(g < self.thickness))}
-
-    def active_nodes(self, x: np.ndarray, slack: float = 0.0) -> np.ndarray:
-        """Nodes (slaves and the vertices of their triangles) of pairs closer than
-        ``thickness + slack``."""
-        self.pairs_at(x)
-        if len(self.slave) == 0:
-            return np.zeros(0, dtype=np.int64)
-        on = self.gaps(x) < self.thickness + slack
-        return np.unique(np.concatenate([self.slave[on], self.view.cells[self.tri[on]].ravel()]))
 
     # --- energy -----------------------------------------------------------------------------
     def __call__(self, x: np.ndarray) -> Blocks:

@@ -336,7 +336,7 @@ def _point_terms(model: Model) -> None:
     from mvfem.contact import Contact
     from mvfem.nodal import NodalView, PointTerms
 
-    scene, surface, comm = model.scene, model.surface, model.comm
+    scene, surface = model.scene, model.surface
     valve = _annulus_facets(surface) is not None
     want_chordae = scene["chordae"]["enabled"] and _has_chordae(surface)
     want_contact = scene["contact"]["enabled"] and valve
@@ -352,13 +352,9 @@ def _point_terms(model: Model) -> None:
         terms.append(model.chordae)
     if want_contact:
         c = scene["contact"]
-        max_edge = comm.bcast(float(np.linalg.norm(
-            view.X[view.cells[:, [0, 1, 2]]] - view.X[view.cells[:, [1, 2, 0]]], axis=2)
-            .max(initial=0.0)) if comm.rank == 0 else None, root=0)
         delta = c["thickness"]
         k = c["stiffness"] or 50.0 * max(abs(model.p_target), 1e3) / delta
-        model.contact = Contact(view, delta, k, search=c["search"] or max(2 * delta, max_edge),
-                                exclusion=c["exclusion"] or max(3 * max_edge, 4 * delta))
+        model.contact = Contact(view, delta, k, search=c["search"], exclusion=c["exclusion"])
         terms.append(model.contact)
     model.view = view
     model.point_terms = PointTerms(view, terms)
