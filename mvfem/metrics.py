@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mvfem.nodal import lumped_area
+
 __all__ = ["valve_metrics", "coapting_nodes", "orifice_area", "COAPT_SLACK", "PIXEL"]
 
 #: a pair coapts when its gap is below this multiple of the contact thickness
@@ -60,19 +62,14 @@ def _node_tags(cells, cell_tag, n) -> np.ndarray:
     return tag
 
 
-def _deformed_nodal_area(x, cells) -> np.ndarray:
-    a = 0.5 * np.linalg.norm(np.cross(x[cells[:, 1]] - x[cells[:, 0]],
-                                      x[cells[:, 2]] - x[cells[:, 0]]), axis=1)
-    return np.bincount(cells.ravel(), np.repeat(a / 3, 3), len(x))
-
-
 def _section(x, cells, flags, origin, normal):
     """Segments of the surface's trace in a plane: (k, 2, 3) end points and (k,) flags (True
     when both crossed edges have a flagged end)."""
     d = (x - origin) @ normal
+    neg = d[cells] < 0
+    cells = cells[neg.any(axis=1) & ~neg.all(axis=1)]  # only the triangles the plane cuts
     segs, fl = [], []
     for tri in cells:
-        dt = d[tri]
         pts, f = [], []
         for i, j in ((0, 1), (1, 2), (2, 0)):
             a, b = tri[i], tri[j]
@@ -80,7 +77,7 @@ def _section(x, cells, flags, origin, normal):
                 t = d[a] / (d[a] - d[b])
                 pts.append(x[a] + t * (x[b] - x[a]))
                 f.append(flags[a] or flags[b])
-        if len(pts) == 2 and not np.all(dt == 0):
+        if len(pts) == 2:
             segs.append(pts)
             fl.append(f[0] and f[1])
     if not segs:
@@ -142,7 +139,7 @@ def valve_metrics(model, x: np.ndarray) -> dict:
     out: dict = {}
     if contact is not None:
         flags = coapting_nodes(contact, x, view.cell_tag)
-        area = _deformed_nodal_area(x, view.cells)
+        area = lumped_area(x, view.cells)
         node_tag = _node_tags(view.cells, view.cell_tag, len(view.X))
         per_leaflet = {names.get(int(t), str(t)): float(area[flags & (node_tag == t)].sum())
                        for t in np.unique(view.cell_tag)}

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from petsc4py import PETSc
 
-__all__ = ["Blocks", "NodalView", "PointTerms", "smooth_penalty"]
+__all__ = ["Blocks", "NodalView", "PointTerms", "smooth_penalty", "lumped_area"]
 
 
 @dataclass
@@ -58,6 +58,14 @@ def smooth_penalty(d: np.ndarray, k, eps) -> tuple[np.ndarray, ...]:
     dphi = np.where(small, k * d**2 / (2 * eps), 0.0) + np.where(big, k * (d - eps / 2), 0.0)
     ddphi = np.where(small, k * d / eps, 0.0) + np.where(big, k, 0.0)
     return phi, dphi, ddphi
+
+
+def lumped_area(x: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """(N,) area per node of a triangle mesh at positions ``x``: a third of each adjacent
+    triangle's."""
+    a = 0.5 * np.linalg.norm(np.cross(x[cells[:, 1]] - x[cells[:, 0]],
+                                      x[cells[:, 2]] - x[cells[:, 0]]), axis=1)
+    return np.bincount(cells.ravel(), np.repeat(a / 3, 3), len(x))
 
 
 class NodalView:
@@ -105,10 +113,7 @@ class NodalView:
             self.cell_ids = np.concatenate([p[2] for p in parts])
             self.cell_tag = np.concatenate([p[3] for p in parts])
             self.free = np.concatenate([p[4] for p in parts]).reshape(-1, 3)
-            a = 0.5 * np.linalg.norm(np.cross(self.X[self.cells[:, 1]] - self.X[self.cells[:, 0]],
-                                              self.X[self.cells[:, 2]] - self.X[self.cells[:, 0]]),
-                                     axis=1)
-            self.area = np.bincount(self.cells.ravel(), np.repeat(a / 3, 3), len(self.X))
+            self.area = lumped_area(self.X, self.cells)
         else:
             self.X = np.zeros((0, 3))
             self.cells = np.zeros((0, 3), dtype=np.int64)
