@@ -146,52 +146,47 @@ def _cmd_materials(args) -> int:
     return 0
 
 
-def _cmd_run(args) -> int:
-    from pathlib import Path
-
-    from mvfem.scene import load_scene, parse_set_option
+def _solve_and_report(scene_path, changes, out) -> int:
+    """Solve a scene (with ``--set`` changes) into ``out``; report on the terminal; exit 3
+    when the solver stopped short. Shared by ``mvfem run`` and ``mvfem demo``."""
     from mvfem.run import check_converged, solve
+    from mvfem.scene import load_scene, parse_set_option
 
-    scene = load_scene(args.scene)
-    if args.set:
-        scene = scene.with_changes(dict(parse_set_option(t) for t in args.set))
-    out = Path(args.out) if args.out else Path("results") / Path(args.scene).stem
+    scene = load_scene(scene_path)
+    if changes:
+        scene = scene.with_changes(dict(parse_set_option(t) for t in changes))
     result = solve(scene, out=out, progress=True)
     s = result.summary
     _say(f"{'converged' if s['converged'] else 'NOT converged'}: {s['pressure_Pa'] / 1e3:g} kPa, "
          f"{s['load_steps']} load steps, {s['newton_iterations']} Newton iterations, "
          f"{s['wall_time_s']:.1f} s; max displacement {s['max_displacement_mm']:.4g} mm")
-    _say(f"wrote {out}/summary.json" + (f", {out}/fields.xdmf" if scene["output"]["xdmf"] else ""))
+    v = s.get("valve")
+    if v:
+        fmt = lambda x, unit: "n/a" if x is None else f"{x:.3g} {unit}"  # noqa: E731
+        _say(f"coaptation length {fmt(v.get('coaptation_length_mm'), 'mm')}, area "
+             f"{fmt(v.get('coaptation_area_mm2'), 'mm2')}; regurgitant orifice "
+             f"{fmt(v.get('regurgitant_orifice_area_mm2'), 'mm2')}; tenting "
+             f"{fmt(v.get('tenting_height_mm'), 'mm')}; max penetration "
+             f"{fmt(s.get('max_penetration_mm'), 'mm')}")
+    written = sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) \
+        if out.is_dir() else []
+    _say(f"wrote {out}: {', '.join(written)}")
     check_converged(result)
     return 0
+
+
+def _cmd_run(args) -> int:
+    from pathlib import Path
+
+    out = Path(args.out) if args.out else Path("results") / Path(args.scene).stem
+    return _solve_and_report(args.scene, args.set, out)
 
 
 def _cmd_demo(args) -> int:
     from pathlib import Path
 
-    from mvfem.run import check_converged, solve
-    from mvfem.scene import load_scene, parse_set_option
-
-    scene = load_scene(Path(__file__).parent / "data" / "demo.toml")
-    if args.set:
-        scene = scene.with_changes(dict(parse_set_option(t) for t in args.set))
-    out = Path(args.out)
-    result = solve(scene, out=out, progress=True)
-    s = result.summary
-    _say(f"{'converged' if s['converged'] else 'NOT converged'}: {s['pressure_Pa'] / 1e3:g} kPa, "
-         f"{s['load_steps']} load steps, {s['newton_iterations']} Newton iterations, "
-         f"{s['wall_time_s']:.1f} s")
-    v = s.get("valve") or {}
-    fmt = lambda x, unit: "n/a" if x is None else f"{x:.3g} {unit}"  # noqa: E731
-    _say(f"coaptation length {fmt(v.get('coaptation_length_mm'), 'mm')}, area "
-         f"{fmt(v.get('coaptation_area_mm2'), 'mm2')}; regurgitant orifice "
-         f"{fmt(v.get('regurgitant_orifice_area_mm2'), 'mm2')}; tenting "
-         f"{fmt(v.get('tenting_height_mm'), 'mm')}; max penetration "
-         f"{fmt(s.get('max_penetration_mm'), 'mm')}")
-    _say(f"wrote {out}/summary.json, fields.xdmf, chordae.csv, map_radial_strain.png, "
-         "map_radial_stress.png")
-    check_converged(result)
-    return 0
+    return _solve_and_report(Path(__file__).parent / "data" / "demo.toml", args.set,
+                             Path(args.out))
 
 
 def _cmd_mesh(args) -> int:
