@@ -220,7 +220,12 @@ def _cmd_mesh(args) -> int:
     if surface.cell_tags is not None:
         tags[surface.cell_tags.indices] = surface.cell_tags.values
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_surface(out, x, cells, cell_data={"region": tags})
+    if args.kind == "valve":  # the import format of CONTRACT.md: leaflet cells, annulus points
+        from mvfem.meshes import write_valve
+
+        write_valve(out, surface)
+    else:
+        write_surface(out, x, cells, cell_data={"region": tags})
     surface.write_info(str(out) + ".json")
     _say(f"wrote {out} ({len(cells)} triangles, {len(x)} nodes) and {out}.json")
     return 0
@@ -256,7 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=_cmd_demo)
 
     g = sub.add_parser("mesh", help="write a generated mesh (any meshio format)")
-    g.add_argument("kind", choices=("disk", "square", "sphere", "octasphere", "tube"))
+    g.add_argument("kind", choices=("valve", "disk", "square", "sphere", "octasphere", "tube"))
     g.add_argument("--out", required=True, help="mesh file, e.g. disk.vtu")
     g.add_argument("--size", type=float, help="target edge length, mm")
     g.add_argument("--radius", type=float, help="disk, sphere, tube radius, mm")

@@ -260,3 +260,35 @@ def test_rejected_petsc_option_is_one_line_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
     assert len(err) == 1 and "solver.petsc_options" in err[0] and "Traceback" not in err[0]
+
+
+def test_mesh_command_writes_the_valve_in_the_import_format(tmp_path):
+    """`mvfem mesh valve` writes leaflet cell data 1/2 and annulus point data on nodes that lie
+    on the generator's annulus curve; the leaflet areas are those the generator reports."""
+    import json
+
+    import meshio
+    from scipy.spatial import cKDTree
+
+    from mvfem.cli import main
+
+    out = tmp_path / "valve.vtu"
+    assert main(["mesh", "valve", "--size", "2", "--out", str(out)]) == 0
+    m = meshio.read(out)
+    info = json.loads((tmp_path / "valve.vtu.json").read_text())["info"]
+    tri = m.cells_dict["triangle"]
+    leaflet = m.cell_data["leaflet"][0]
+    x = m.points
+    area = 0.5 * np.linalg.norm(np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]]),
+                                axis=1)
+    for name, tag in (("anterior", 1), ("posterior", 2)):
+        assert area[leaflet == tag].sum() == pytest.approx(info["leaflet_area_mm2"][name],
+                                                           rel=1e-9)
+    from mpi4py import MPI
+
+    from mvfem.meshes.valve import valve
+
+    curve = valve(MPI.COMM_SELF, size=2.0, free_edge_size=1.0).annulus_curve
+    on = x[m.point_data["annulus"] != 0]
+    assert len(on) > 20
+    assert cKDTree(curve).query(on)[0].max() < 0.05
