@@ -42,8 +42,9 @@ test: test-serial test-mpi
 test-serial: setup
 	$(PY) -m pytest -q
 
+# -u: each rank's report reaches the log even when mpirun aborts the job
 test-mpi: setup
-	$(MPIRUN) $(PY) -m pytest -q -m mpi -p no:cacheprovider --color=no
+	$(MPIRUN) $(PY) -u -m pytest -q -m mpi -p no:cacheprovider --color=no
 
 clean:
 	rm -rf $(VENV) results .pytest_cache *.egg-info

@@ -13,16 +13,28 @@ quiet_jit_logs()
 
 
 def pytest_configure(config):
-    """Under mpirun each rank gets its own temporary root: two ranks cleaning pytest's shared
-    numbered directories at once race (seen as a failed `make test-mpi`)."""
+    """Under mpirun each rank gets its own temporary root, inside one directory made fresh for
+    this run: two ranks cleaning pytest's shared numbered directories at once race (seen as a
+    failed `make test-mpi`), and a fixed path would be shared by two test runs on one machine."""
     comm = MPI.COMM_WORLD
     if comm.size > 1 and not config.option.basetemp:
         import os
         import tempfile
 
-        # a fixed name per rank: pytest empties a given basetemp when it starts
-        config.option.basetemp = os.path.join(tempfile.gettempdir(),
-                                              f"mvfem-pytest-rank{comm.rank}")
+        root = tempfile.mkdtemp(prefix="mvfem-pytest-") if comm.rank == 0 else None
+        root = comm.bcast(root, root=0)
+        config.option.basetemp = os.path.join(root, f"rank{comm.rank}")
+        config._mvfem_tmp_root = root
+
+
+def pytest_unconfigure(config):
+    root = getattr(config, "_mvfem_tmp_root", None)
+    if root is not None:
+        import shutil
+
+        MPI.COMM_WORLD.Barrier()
+        if MPI.COMM_WORLD.rank == 0:
+            shutil.rmtree(root, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True)
