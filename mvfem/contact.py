@@ -1,38 +1,50 @@
-"""Contact between leaflets and within a leaflet: a penalty on the gap to the opposite surface.
+r"""Contact between leaflets and within a leaflet: a barrier on the distance to the other surface.
 
-Every free node ``s`` is paired with the nearest triangle ``T`` of the deformed surface that was
-not its neighbour in the open valve (reference distance above ``exclusion``): the pairs come
-from a KD-tree on the triangle centroids. For a pair, with the unit normal ``n`` of ``T`` and
-the barycentric coordinates ``xi`` of the closest point, both frozen when the pairs are built,
-and ``sigma`` the side of ``T`` the node is on,
+Energy: every free node ``s`` and every triangle ``T`` of the deformed surface that was not
+its neighbour in the open valve (reference distance above ``exclusion``) and is now closer
+than the contact thickness ``delta`` form a pair, found with a KD-tree on the triangle
+centroids. With ``d`` the (unsigned) distance from the node to its closest point
+``q = sum_i xi_i x_i`` on ``T``,
 
-.. math:: g = \\sigma\\, n\\cdot(x_s - \\textstyle\\sum_i \\xi_i x_i),\\qquad
-          \\Pi = A_s\\, \\phi(\\delta - g)
+.. math:: \Pi = \sum_{(s, T)} A_s\, b(d),\qquad
+          \partial d/\partial x_s = \nu,\quad \partial d/\partial x_i = -\xi_i \nu,
+          \quad \nu = (x_s - q)/d
 
-with ``A_s`` the node's lumped area, ``delta`` the contact thickness and ``phi`` the rounded
-one-sided quadratic of :func:`mvfem.nodal.smooth_penalty` (stiffness ``k`` in Pa/mm): a
-pressure ``k (delta - g)`` pushes the surfaces apart once they come closer than ``delta``.
-The pairs are rebuilt at every evaluation of the residual (``n`` and ``xi`` at the current
-positions; the tangent treats them as fixed, ``A_s phi'' dg dg^T``). Where the closest point is
-on the boundary of the other sheet the gap is the distance to it (never a penetration). Every
-node is a slave and every triangle a master (two-pass), which covers leaflet-leaflet and self
-contact alike.
+with ``A_s`` the node's lumped area and ``b`` IPC's log barrier (:func:`barrier`, stiffness
+``kappa`` in Pa/mm): C2 where a pair enters at ``d = delta`` and unbounded as ``d -> 0``, so
+no finite load (a chord pulling a free edge, say) presses a node onto the other leaflet. The
+distance to a triangle is continuously differentiable away from it, so the residual has no
+jumps: there is no "nearest triangle" to switch between and no side to choose (a
+nearest-triangle penalty with sides did not get the valve past its first contact, Newton
+cycling between pairings; a bounded quadratic penalty let chordae pull free-edge nodes onto
+the other leaflet, where Newton stalled). The price: a node opposite a vertex pairs with
+every triangle around it, so the contact stiffness varies by up to the vertex valence over
+the surface; the contact pressure at equilibrium still balances the load. The tangent is
+``A_s b'' dd dd^T`` (the curvature of ``d`` is left out; it keeps the tangent positive
+semi-definite).
 
-The side ``sigma`` of a pair comes from the node's memory of the last accepted state
-(:meth:`Contact.remember`): the side of the triangle it was paired with then, carried over to
-the new triangle through the turn of the normal. A node found on the other side of its
-(interior-projected) triangle than remembered has passed through the surface, which
-:meth:`Contact.crossings` reports so that the load step is cut back. Frozen pairs within a
-step were tried first and gave spurious intrusions of 2.5 mm as the leaflets swung.
+No crossing: the energy alone cannot stop a Newton update from carrying a node through a
+triangle in one jump (then the unsigned distance pushes it on through). :meth:`step_limit`
+scales every update so that no node passes through an admissible triangle on the way
+(vertex-face continuous collision detection); line-search Newton applies it to each update
+(``SNESProblem``'s precheck), so no iterate, hence no state, has a leaflet passed through
+another. (A conservative bound on the closing distance, as in IPC's additive CCD, was tried
+first: it also throttled nodes sliding along the other leaflet, and Newton stalled. A side
+remembered from the last accepted state was used before that, and its carry-over between
+triangles reported false crossings.)
 """
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
-from mvfem.nodal import Blocks, NodalView, smooth_penalty
+from mvfem.nodal import Blocks, NodalView
 
-__all__ = ["Contact", "closest_point_on_triangles"]
+__all__ = ["Contact", "closest_point_on_triangles", "barrier"]
+
+log = logging.getLogger(__name__)
 
 
 def closest_point_on_triangles(p, a, b, c):
@@ -71,35 +83,49 @@ def closest_point_on_triangles(p, a, b, c):
     return best, best_bary, inside
 
 
+def barrier(d: np.ndarray, delta: float, kappa) -> tuple[np.ndarray, ...]:
+    r"""IPC's log barrier and its first two derivatives in ``d`` (0 for ``d >= delta``).
+
+    .. math:: b(d) = -\kappa (d - \delta)^2 \ln(d/\delta), \quad 0 < d < \delta
+
+    C2 at ``d = delta`` (a pair enters with no energy, force or stiffness) and unbounded as
+    ``d -> 0``: no finite load presses a node onto a triangle. Its pressure
+    ``-b'(d) = kappa delta`` at ``d = 0.53 delta``.
+    """
+    d = np.asarray(d, dtype=float)
+    on = (d > 0) & (d < delta)
+    x = np.where(on, d, delta)
+    g = x - delta
+    lg = np.log(x / delta)
+    b = np.where(on, -kappa * g**2 * lg, np.where(d <= 0, np.inf, 0.0))
+    db = np.where(on, -kappa * (2 * g * lg + g**2 / x), 0.0)
+    ddb = np.where(on, -kappa * (2 * lg + 4 * g / x - g**2 / x**2), 0.0)
+    return b, db, ddb
+
+
 def _normals(x, tri):
     n = np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]])
     return n / np.linalg.norm(n, axis=1)[:, None]
 
 
 class Contact:
-    """Node-to-triangle penalty contact over a whole surface (rank 0 holds the pairs).
+    """Node-to-triangle penalty contact over a whole surface (rank 0 finds the pairs).
 
     Args:
         view: the global node view.
         thickness: contact thickness ``delta``, mm (surfaces are kept this far apart).
-        stiffness: penalty ``k``, Pa/mm.
-        search: pairs are kept for nodes within this distance of a triangle, mm (default
-            the larger of 2 ``thickness`` and the longest reference edge).
+        stiffness: barrier stiffness ``kappa``, Pa/mm (contact pressure ``kappa delta`` at
+            about half the thickness).
         exclusion: node and triangle closer than this in the open (reference) surface never
             pair (they are neighbours on one sheet), mm (default the larger of 3 longest edges
             and 4 ``thickness``).
-        onset: rounding of the penalty onset, mm.
     """
 
     def __init__(self, view: NodalView, thickness: float, stiffness: float,
-                 search: float | None = None, exclusion: float | None = None,
-                 onset: float | None = None):
+                 exclusion: float | None = None):
         self.view = view
         self.thickness = float(thickness)
         self.stiffness = float(stiffness)
-        self.onset = float(onset if onset is not None else thickness / 4)
-        self.refreshes = 0
-        self.time_s = 0.0
         if view.comm.rank == 0:
             self.slaves = np.flatnonzero(view.free.any(axis=1))
             edges = np.concatenate([view.cells[:, [0, 1]], view.cells[:, [1, 2]],
@@ -110,154 +136,185 @@ class Contact:
             self.slaves = np.zeros(0, dtype=np.int64)
             self._max_edge = 0.0
         # only rank 0 searches, so the defaults need not agree across ranks
-        self.search = float(search if search is not None
-                            else max(2 * self.thickness, self._max_edge))
         self.exclusion = float(exclusion if exclusion is not None
                                else max(3 * self._max_edge, 4 * self.thickness))
-        self._empty()
-        n = len(view.X)
-        self._mem_sigma = np.zeros(n)
-        self._mem_normal = np.zeros((n, 3))
-        self._cache_x = None
-        self._inside = np.zeros(0, dtype=bool)
-        self._side = np.zeros(0)
-        self._tri_normal = np.zeros((0, 3))
+        self._excluded = self._excluded_pairs() if view.comm.rank == 0 else None
 
-    def _empty(self) -> None:
-        self.slave = np.zeros(0, dtype=np.int64)
-        self.tri = np.zeros(0, dtype=np.int64)
-        self.xi = np.zeros((0, 3))
-        self.normal = np.zeros((0, 3))
-        self.sigma = np.zeros(0)
-
-    def __len__(self) -> int:
-        return len(self.slave)
-
-    # --- pairs ------------------------------------------------------------------------------
-    def _candidates(self, x: np.ndarray):
-        """Nearest admissible triangle of every slave within the search distance."""
+    def _excluded_pairs(self) -> np.ndarray:
+        """Sorted keys ``s * n_cells + t`` of the (node, triangle) pairs that never interact:
+        a vertex of ``t`` within ``exclusion`` of ``s`` in the reference surface."""
         from scipy.spatial import cKDTree
 
-        v = self.view
-        cells = v.cells
-        tree = cKDTree(x[cells].mean(axis=1))
-        # a centroid is within 2/3 of the longest edge of every point of its triangle; the
-        # longest edge may have grown since the reference state, allow for it
-        grow = np.linalg.norm(x[cells[:, 1]] - x[cells[:, 0]], axis=1).max(initial=0.0)
-        radius = self.search + max(self._max_edge, grow)
-        lists = tree.query_ball_point(x[self.slaves], radius)
-        counts = np.fromiter((len(li) for li in lists), dtype=np.int64, count=len(lists))
-        none = (np.zeros(0, dtype=np.int64),) * 2 + (np.zeros((0, 3)), np.zeros(0),
-                                                     np.zeros(0, dtype=bool))
-        if counts.sum() == 0:
-            return none
-        s = np.repeat(self.slaves, counts)
-        t = np.concatenate([np.asarray(li, dtype=np.int64) for li in lists if li])
-        ref = np.min(np.linalg.norm(v.X[cells[t]] - v.X[s][:, None, :], axis=2), axis=1)
-        keep = ref > self.exclusion
-        s, t = s[keep], t[keep]
-        tri = cells[t]
-        dist, bary, inside = closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]],
-                                                        x[tri[:, 2]])
-        near = dist < self.search
-        if not near.any():
-            return none
-        s, t, dist, bary, inside = s[near], t[near], dist[near], bary[near], inside[near]
-        # the nearest triangle of each slave
-        order = np.lexsort((dist, s))
-        s, t, dist, bary, inside = s[order], t[order], dist[order], bary[order], inside[order]
-        first = np.r_[True, s[1:] != s[:-1]]
-        return s[first], t[first], bary[first], dist[first], inside[first]
+        X, cells = self.view.X, self.view.cells
+        if len(self.slaves) == 0 or len(cells) == 0:
+            return np.zeros(0, dtype=np.int64)
+        node_cells = [[] for _ in range(len(X))]
+        for t, tri in enumerate(cells):
+            for i in tri:
+                node_cells[i].append(t)
+        near = cKDTree(X).query_ball_point(X[self.slaves], self.exclusion)
+        keys = [s * len(cells) + np.unique(np.concatenate([node_cells[j] for j in nb]))
+                for s, nb in zip(self.slaves, near)]
+        return np.unique(np.concatenate(keys).astype(np.int64))
 
-    def pairs_at(self, x: np.ndarray) -> None:
-        """Pairs at positions ``x``: each slave with its nearest admissible triangle, normal
-        and barycentric coordinates of the closest point taken at ``x``; the side from the
-        slave's memory of the last accepted state (see :meth:`remember`), else from ``x``."""
-        if self.view.comm.rank != 0:
-            return
-        if self._cache_x is not None and np.array_equal(self._cache_x, x):
-            return
-        import time
-
-        t0 = time.perf_counter()
-        s, t, bary, _, inside = self._candidates(x)
-        tri = self.view.cells[t]
-        n = _normals(x, tri)
-        side = np.sign(np.einsum("ij,ij->i", n, x[s] - np.einsum("ij,ijk->ik", bary, x[tri])))
-        side[side == 0] = 1.0
-        known = self._mem_sigma[s] != 0
-        turn = np.einsum("ij,ij->i", n[known], self._mem_normal[s[known]])
-        side[known] = self._mem_sigma[s[known]] * np.where(turn >= 0, 1.0, -1.0)
-        # beside an edge of the other sheet (closest point on its boundary), the gap is the
-        # distance, along the line to the closest point: never a penetration
-        d = x[s] - np.einsum("ij,ijk->ik", bary, x[tri])
-        dist = np.linalg.norm(d, axis=1)
-        out = ~inside & (dist > 1e-12)
-        eff = n.copy()
-        eff[out] = d[out] / dist[out, None]
-        sigma = side.copy()
-        sigma[out] = 1.0
-        self.slave, self.tri, self.xi, self.normal, self.sigma = s, t, bary, eff, sigma
-        self._side, self._tri_normal = side, n
-        self._inside = inside
-        self._cache_x = x.copy()
-        self.refreshes += 1
-        self.time_s += time.perf_counter() - t0
-
-    def remember(self, x: np.ndarray) -> None:
-        """Record, at an accepted (non-crossing) state ``x``, which side of the other surface
-        every paired node is on; later pairs take their side from it."""
-        if self.view.comm.rank != 0:
-            return
-        self.pairs_at(x)
-        self._mem_sigma[:] = 0.0
-        self._mem_sigma[self.slave] = self._side
-        self._mem_normal[self.slave] = self._tri_normal
-
-    def crossings(self, x: np.ndarray) -> int:
-        """Nodes now on the other side of their triangle than remembered (passed through)."""
-        if self.view.comm.rank != 0:
-            return 0
-        self.pairs_at(x)
-        if len(self.slave) == 0:
-            return 0
-        tri = self.view.cells[self.tri]
-        g = np.einsum("ij,ij->i", self._tri_normal,
-                      x[self.slave] - np.einsum("ij,ijk->ik", self.xi, x[tri]))
-        return int(np.sum(self._inside & (np.sign(g) != self._side) & (np.abs(g) > 0)))
-
-    def gaps(self, x: np.ndarray) -> np.ndarray:
-        """Signed gap of every pair at positions ``x`` (frozen normals)."""
-        tri = self.view.cells[self.tri]
-        xp = np.einsum("ij,ijk->ik", self.xi, x[tri])
-        return self.sigma * np.einsum("ij,ij->i", self.normal, x[self.slave] - xp)
-
+    # --- reporting ----------------------------------------------------------------------------
     def penetration(self, x: np.ndarray) -> dict:
-        """Largest intrusion into the contact thickness, and crossings, at positions ``x``."""
-        self.pairs_at(x)
-        if len(self.slave) == 0:
-            return {"max_penetration_mm": 0.0, "crossings": 0, "active_pairs": 0}
-        g = self.gaps(x)
-        return {"max_penetration_mm": float(max(0.0, (self.thickness - g).max())),
-                "crossings": self.crossings(x),
-                "active_pairs": int(np.sum(g < self.thickness))}
+        """Largest intrusion into the contact thickness (``thickness - d`` over the pairs) and
+        the number of pairs closer than the thickness, at positions ``x``."""
+        _, _, _, d = self.active_pairs(x)
+        if len(d) == 0:
+            return {"max_penetration_mm": 0.0, "active_pairs": 0, "min_distance_mm": None}
+        return {"max_penetration_mm": float(self.thickness - d.min()), "active_pairs": len(d),
+                "min_distance_mm": float(d.min())}
 
     # --- energy -----------------------------------------------------------------------------
+    def _near(self, x: np.ndarray, radius: float):
+        """(node, triangle) index pairs, slaves only, with the node within ``radius`` of the
+        triangle's centroid, and that distance."""
+        from scipy.spatial import cKDTree
+
+        cells = self.view.cells
+        nodes = cKDTree(x[self.slaves])
+        cents = cKDTree(x[cells].mean(axis=1))
+        hits = nodes.sparse_distance_matrix(cents, radius, output_type="ndarray")
+        return self.slaves[hits["i"]], hits["j"].astype(np.int64), hits["v"]
+
+    def active_pairs(self, x: np.ndarray, within: float | None = None):
+        """Every admissible (node, triangle) pair closer than ``within`` (default the
+        thickness) at ``x``: slave nodes, triangle indices, barycentric coordinates of the
+        closest points, distances."""
+        within = self.thickness if within is None else float(within)
+        cells = self.view.cells
+        empty = (np.zeros(0, dtype=np.int64),) * 2 + (np.zeros((0, 3)), np.zeros(0))
+        if len(self.slaves) == 0 or len(cells) == 0:
+            return empty
+        # a triangle's points are within 2/3 of its longest edge of its centroid
+        grow = np.linalg.norm(x[cells[:, 1]] - x[cells[:, 0]], axis=1).max(initial=0.0)
+        s, t, _ = self._near(x, within + max(self._max_edge, grow))
+        keep = self._admissible(s, t)
+        s, t = s[keep], t[keep]
+        tri = cells[t]
+        dist, bary, _ = closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]],
+                                                   x[tri[:, 2]])
+        near = dist < within
+        return s[near], t[near], bary[near], dist[near]
+
+    def _admissible(self, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Node and triangle further apart than ``exclusion`` in the reference surface."""
+        keys = s.astype(np.int64) * len(self.view.cells) + t
+        pos = np.searchsorted(self._excluded, keys)
+        pos[pos == len(self._excluded)] = 0
+        return self._excluded[pos] != keys if len(self._excluded) else np.ones(len(s), bool)
+
+    def step_limit(self, x: np.ndarray, dx: np.ndarray, keep: float = 0.2) -> float:
+        """Largest fraction ``alpha`` <= 1 of the update ``dx`` along which no node passes
+        through an admissible triangle (vertex-face continuous collision detection).
+
+        Along ``x + t dx`` a node meets the plane of a triangle where the cubic
+        ``det[a - p, b - p, c - p](t)`` changes sign; it passes through the triangle when its
+        closest point there is inside. The update is cut to ``(1 - keep)`` of the first such
+        ``t``. Candidate pairs: those whose distance could close at all, i.e. closer than the
+        largest relative motion (moving node and triangle together changes nothing). Newton
+        updates are scaled by it (SNESProblem's precheck), so no iterate has a leaflet passed
+        through another, however large the update. Edge-edge crossings are not checked.
+        """
+        if len(self.slaves) == 0 or not np.any(dx):
+            return 1.0
+        cells = self.view.cells
+        lo, hi = dx.min(axis=0), dx.max(axis=0)
+        reach = 2 * float(np.linalg.norm(dx - (lo + hi) / 2, axis=1).max())
+        cent = x[cells].mean(axis=1)
+        r_tri = np.linalg.norm(x[cells] - cent[:, None, :], axis=2).max(axis=1)
+        s, t, dc = self._near(x, reach + float(r_tri.max(initial=0.0)))
+        tri = cells[t]
+        w = dx[tri] - dx[s][:, None, :]                    # relative motion of the vertices
+        # the pair's distance is at least dc - r_tri and closes by at most max |w|
+        can = (dc - r_tri[t] <= np.linalg.norm(w, axis=2).max(axis=1))
+        can[can] = self._admissible(s[can], t[can])
+        s, t, tri, w = s[can], t[can], tri[can], w[can]
+        if len(s) == 0:
+            return 1.0
+        u = x[tri] - x[s][:, None, :]                      # (m, 3, 3) vertices - node
+
+        def det(a, b, c):
+            return np.einsum("ij,ij->i", a, np.cross(b, c))
+
+        ua, ub, uc = u[:, 0], u[:, 1], u[:, 2]
+        wa, wb, wc = w[:, 0], w[:, 1], w[:, 2]
+        coef = np.stack([det(ua, ub, uc),
+                         det(wa, ub, uc) + det(ua, wb, uc) + det(ua, ub, wc),
+                         det(wa, wb, uc) + det(wa, ub, wc) + det(ua, wb, wc),
+                         det(wa, wb, wc)], axis=1)
+        first = self._first_crossing(coef, x[s], dx[s], x[tri], dx[tri])
+        alpha = min(1.0, (1 - keep) * float(first.min(initial=np.inf)))
+        if alpha < 0.05 and log.isEnabledFor(logging.DEBUG):
+            i = int(np.argmin(first))
+            v = self.view
+            log.debug(f"      contact cuts the update to {alpha:.3g}: node {s[i]} (tag "
+                      f"{v.cell_tag[np.flatnonzero((v.cells == s[i]).any(axis=1))[0]]}, "
+                      f"|dx| {np.linalg.norm(dx[s[i]]):.3g} mm) through triangle {t[i]} "
+                      f"(tag {v.cell_tag[t[i]]}), distance {np.linalg.norm(u[i].mean(0)):.3g}")
+        return alpha
+
+    def _first_crossing(self, coef, p, dp, v, dv, samples: int = 16) -> np.ndarray:
+        """Earliest t in [0, 1] where each moving node passes through its moving triangle
+        (inf where it does not): sign changes of the coplanarity cubic on ``samples``
+        sub-intervals, refined by bisection, kept where the node is then inside the
+        triangle (with a margin of 1e-3 of the longest edge)."""
+        m = len(coef)
+        out = np.full(m, np.inf)
+
+        def f(tt):
+            return coef[:, 0] + tt * (coef[:, 1] + tt * (coef[:, 2] + tt * coef[:, 3]))
+
+        grid = np.linspace(0.0, 1.0, samples + 1)
+        vals = np.stack([f(np.full(m, g)) for g in grid], axis=1)   # (m, samples + 1)
+        tol = 1e-3 * max(self._max_edge, 1e-12)
+        todo = np.ones(m, dtype=bool)
+        for i in range(samples):
+            change = todo & (vals[:, i] * vals[:, i + 1] <= 0) & (vals[:, i] != 0)
+            if not change.any():
+                continue
+            idx = np.flatnonzero(change)
+            a = np.full(len(idx), grid[i])
+            b = np.full(len(idx), grid[i + 1])
+            fa = vals[idx, i]
+            c = coef[idx]
+            for _ in range(40):
+                mid = 0.5 * (a + b)
+                fm = c[:, 0] + mid * (c[:, 1] + mid * (c[:, 2] + mid * c[:, 3]))
+                left = fa * fm <= 0
+                b = np.where(left, mid, b)
+                a = np.where(left, a, mid)
+                fa = np.where(left, fa, fm)
+            tc = a  # the crossing is at or just after a: stopping before it is safe
+            pt = p[idx] + tc[:, None] * dp[idx]
+            vt = v[idx] + tc[:, None, None] * dv[idx]
+            dist, _, _ = closest_point_on_triangles(pt, vt[:, 0], vt[:, 1], vt[:, 2])
+            hit = dist <= tol
+            out[idx[hit]] = tc[hit]
+            todo[idx[hit]] = False
+        return out
+
     def __call__(self, x: np.ndarray) -> Blocks:
-        self.pairs_at(x)
-        m = len(self.slave)
+        s, t, xi, d = self.active_pairs(x)
+        m = len(s)
         if m == 0:
             return Blocks(np.zeros((0, 4), dtype=np.int64), np.zeros((0, 4, 3)),
                           np.zeros((0, 12, 12)))
-        tri = self.view.cells[self.tri]
-        g = self.gaps(x)
-        k = self.stiffness * self.view.area[self.slave]
-        phi, dphi, ddphi = smooth_penalty(self.thickness - g, k, self.onset)
-        # dg/dx: sigma n on the node, -sigma xi_i n on the triangle's vertices
-        coef = np.concatenate([np.ones((m, 1)), -self.xi], axis=1) * self.sigma[:, None]
-        dg = coef[:, :, None] * self.normal[:, None, :]          # (m, 4, 3)
-        force = -dphi[:, None, None] * dg
-        flat = dg.reshape(m, 12)
+        tri = self.view.cells[t]
+        diff = x[s] - np.einsum("ij,ijk->ik", xi, x[tri])
+        nu = np.zeros_like(diff)
+        ok = d > 1e-12
+        nu[ok] = diff[ok] / d[ok, None]
+        if not ok.all():  # on the triangle: its normal (either side pushes apart)
+            nu[~ok] = _normals(x, tri[~ok])
+        k = self.stiffness * self.view.area[s]
+        phi, dphi, ddphi = barrier(d, self.thickness, k)
+        coef = np.concatenate([np.ones((m, 1)), -xi], axis=1)
+        dd = coef[:, :, None] * nu[:, None, :]          # (m, 4, 3): d(d)/dx
+        force = dphi[:, None, None] * dd
+        flat = dd.reshape(m, 12)
         K = ddphi[:, None, None] * flat[:, :, None] * flat[:, None, :]
-        nodes = np.concatenate([self.slave[:, None], tri], axis=1)
+        nodes = np.concatenate([s[:, None], tri], axis=1)
         return Blocks(nodes, force, K, float(phi.sum()))

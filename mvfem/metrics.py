@@ -42,17 +42,15 @@ def _frame(annulus: np.ndarray, axis_hint: np.ndarray):
 
 
 def coapting_nodes(contact, x: np.ndarray, cell_tag: np.ndarray) -> np.ndarray:
-    """Boolean (N,) mask: nodes paired with another leaflet's triangle at a small gap."""
+    """Boolean (N,) mask: nodes closer than ``COAPT_SLACK`` x the contact thickness to a
+    triangle of another leaflet."""
     view = contact.view
     mask = np.zeros(len(view.X), dtype=bool)
-    contact.pairs_at(x)
-    if len(contact.slave) == 0:
+    s, t, _, _ = contact.active_pairs(x, within=COAPT_SLACK * contact.thickness)
+    if len(s) == 0:
         return mask
-    g = contact.gaps(x)
     node_tag = _node_tags(view.cells, cell_tag, len(view.X))
-    other = node_tag[contact.slave] != cell_tag[contact.tri]
-    near = g < COAPT_SLACK * contact.thickness
-    mask[contact.slave[near & other]] = True
+    mask[s[node_tag[s] != cell_tag[t]]] = True
     return mask
 
 

@@ -353,8 +353,9 @@ def _point_terms(model: Model) -> None:
     if want_contact:
         c = scene["contact"]
         delta = c["thickness"]
-        k = c["stiffness"] or 50.0 * max(abs(model.p_target), 1e3) / delta
-        model.contact = Contact(view, delta, k, search=c["search"], exclusion=c["exclusion"])
+        # barrier pressure kappa delta = the load at about half the thickness
+        k = c["stiffness"] or max(abs(model.p_target), 1e3) / delta
+        model.contact = Contact(view, delta, k, exclusion=c["exclusion"])
         terms.append(model.contact)
     model.view = view
     model.point_terms = PointTerms(view, terms)

@@ -229,8 +229,8 @@ def _point_outputs(model) -> dict:
             out["max_penetration_mm"] = pen["max_penetration_mm"]
             out["contact"] = {"thickness_mm": model.contact.thickness,
                               "stiffness_Pa_per_mm": model.contact.stiffness,
-                              "crossings": pen["crossings"], "active_pairs": pen["active_pairs"],
-                              "pair_searches": model.contact.refreshes}
+                              "active_pairs": pen["active_pairs"],
+                              "min_distance_mm": pen["min_distance_mm"]}
         if getattr(model.surface, "annulus_curve", None) is not None:
             v = valve_metrics(model, x)
             v.pop("_coapting")

@@ -150,7 +150,6 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         "enabled": (_bool, True),  # valve scenes only
         "thickness": (_length, 0.5),     # surfaces are kept this far apart
         "stiffness": (_quantity(STIFFNESS, "Pa/mm"), None),
-        "search": (_length, None),
         "exclusion": (_length, None),
     },
     "load": {

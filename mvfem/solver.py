@@ -111,6 +111,11 @@ class SNESProblem:
             opts[k] = v
         self.snes.setFunction(self._residual, self.b)
         self.snes.setJacobian(self._jacobian, self.A)
+        self.step_scalings = 0
+        if self.point_terms is not None and any(hasattr(t, "step_limit")
+                                                for t in self.point_terms.terms):
+            # line-search Newton only: newtontr does not call the precheck
+            self.snes.setLineSearchPreCheck(self._precheck)
         try:
             self.snes.setFromOptions()
             self.snes.getKSP().setFromOptions()
@@ -118,6 +123,15 @@ class SNESProblem:
         except PETSc.Error as e:
             raise ValueError(f"PETSc rejected the options {options or {}} (error code "
                              f"{e.ierr})") from None
+
+    def _precheck(self, x: PETSc.Vec, y: PETSc.Vec, *args) -> bool:
+        """Scale the Newton update (x_new = x - y) to what the point terms allow."""
+        alpha = self.point_terms.step_limit(x.array_r, -y.array_r)
+        if alpha < 1.0:
+            y.scale(alpha)
+            self.step_scalings += 1
+            return True
+        return False
 
     def _update_u(self, x: PETSc.Vec) -> None:
         x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)

@@ -142,42 +142,112 @@ def _two_sheets(gap: float, shift: float = 0.0):
 
 
 def test_contact_pushes_sheets_apart_with_the_penalty_pressure():
-    """Sheets 0.3 mm apart with a contact thickness of 0.5 mm: every interior node of either
-    sheet is paired with the other sheet at gap 0.3 and pushed away with the force
-    A_s k (delta - g - eps/2) along the normal; the total forces on the two sheets balance."""
+    """Sheets 0.3 mm apart, one exactly above the other, contact thickness 0.5 mm: a node's
+    closest point on the other sheet is the vertex opposite, shared by all ``val`` triangles
+    around it, so each node pairs ``val`` times and is pushed away with val A_s p(g) along z,
+    p(g) = -b'(g) = k (2 (g - delta) ln(g / delta) + (g - delta)^2 / g) for the barrier
+    b = -k (g - delta)^2 ln(g / delta), and the opposite vertex takes the reaction; the total
+    forces on the two sheets balance and nothing acts in-plane."""
     from mvfem.contact import Contact
 
     view, x = _two_sheets(0.3)
-    k, delta, eps = 1e5, 0.5, 0.125
-    c = Contact(view, delta, k, search=1.0, exclusion=0.2)
-    c.remember(view.X)
+    k, delta, g = 1e5, 0.5, 0.3
+    c = Contact(view, delta, k, exclusion=0.2)
     blk = c(x)
-    assert np.allclose(c.gaps(x), 0.3)
+    assert np.allclose(c.active_pairs(x)[3], 0.3)
     f = np.zeros_like(x)
     for e, nd in enumerate(blk.nodes):
         f[nd] += blk.force[e]
     n = len(x) // 2
-    # residual = energy gradient: the lower sheet is pushed down (+z gradient), upper up
-    expected = view.area * k * (delta - 0.3 - eps / 2)
-    assert f[:n, 2].sum() == pytest.approx(expected[:n].sum() * 2, rel=1e-9)
-    assert f[:, 2].sum() == pytest.approx(0.0, abs=1e-6 * np.abs(f).max())
+    valence = np.bincount(view.cells.ravel(), minlength=len(x))
+    # residual = energy gradient: the lower sheet is pushed down (+z gradient), upper up;
+    # each node's own pairs plus the reactions of the opposite node's pairs
+    pressure = k * (2 * (g - delta) * np.log(g / delta) + (g - delta) ** 2 / g)
+    expected = 2 * valence[:n] * view.area[:n] * pressure
+    assert np.allclose(f[:n, 2], expected, rtol=1e-9)
+    assert f[:, 2].sum() == pytest.approx(0.0, abs=1e-9 * np.abs(f).max())
     assert np.allclose(f[:, :2], 0.0, atol=1e-9 * np.abs(f).max())
     pen = c.penetration(x)
-    assert pen["max_penetration_mm"] == pytest.approx(0.2) and pen["crossings"] == 0
+    assert pen["max_penetration_mm"] == pytest.approx(delta - g)
 
 
-def test_contact_sides_come_from_the_remembered_state():
-    """After the upper sheet is moved through the lower one (0.3 above -> 0.2 below), the
-    pairs keep the remembered side: a negative gap, counted as crossings."""
+def test_barrier_derivatives_and_its_pressure_at_half_the_thickness():
+    """b' and b'' match central differences of b; b, b', b'' vanish at d = delta (C2 entry);
+    b grows like kappa delta^2 ln(delta / d) as d -> 0; -b'(d) = kappa delta at d/delta = 0.5324 (the root of
+    2 (x - 1) ln x + (x - 1)^2 / x = 1, found by bisection here)."""
+    from mvfem.contact import barrier
+
+    delta, kappa, h = 0.5, 3.0, 1e-7
+    d = np.linspace(0.05, 0.49, 23)
+    b, db, ddb = barrier(d, delta, kappa)
+    assert np.allclose(db, (barrier(d + h, delta, kappa)[0] - barrier(d - h, delta, kappa)[0])
+                       / (2 * h), rtol=1e-6)
+    assert np.allclose(ddb, (barrier(d + h, delta, kappa)[1] - barrier(d - h, delta, kappa)[1])
+                       / (2 * h), rtol=1e-6)
+    assert np.all(db < 0) and np.all(ddb > 0)
+    edge = barrier(np.array([delta * (1 - 1e-6)]), delta, kappa)
+    assert max(abs(edge[0][0]), abs(edge[1][0]), abs(edge[2][0])) < 1e-5 * kappa
+    tiny = barrier(np.array([1e-12, 1e-6]), delta, kappa)[0]
+    assert tiny[0] == pytest.approx(kappa * delta**2 * np.log(delta / 1e-12), rel=1e-9)
+    assert tiny[0] > tiny[1] > b.max()
+    lo, hi = 0.1, 0.99
+    for _ in range(60):
+        x = 0.5 * (lo + hi)
+        lo, hi = (x, hi) if 2 * (x - 1) * np.log(x) + (x - 1) ** 2 / x > 1 else (lo, x)
+    assert -barrier(np.array([x * delta]), delta, kappa)[1][0] == pytest.approx(kappa * delta)
+    assert x == pytest.approx(0.5324, abs=1e-4)
+
+
+def test_contact_energy_derivatives_match_finite_differences():
+    """Sheets shifted in-plane and tilted (closest points on faces, edges and vertices): the
+    force is the gradient of the contact energy (central differences along random
+    directions)."""
     from mvfem.contact import Contact
 
-    view, _ = _two_sheets(0.3, shift=0.1)
-    c = Contact(view, 0.5, 1e5, search=1.0, exclusion=0.2)
-    c.remember(view.X)
-    x = view.X.copy()
-    x[len(x) // 2:, 2] -= 0.5
-    assert c.crossings(x) > 0
-    assert np.all(c.gaps(x)[c._inside] < 0)
+    view, x = _two_sheets(0.25, shift=0.37)
+    rng = np.random.default_rng(3)
+    x = x + rng.normal(scale=0.04, size=x.shape)
+    c = Contact(view, 0.5, 1e5, exclusion=0.2)
+    blk = c(x)
+    assert len(blk.nodes) > 20
+    g = np.zeros_like(x)
+    for e, nd in enumerate(blk.nodes):
+        g[nd] += blk.force[e]
+    h = 1e-6
+    for _ in range(10):
+        v = rng.normal(size=x.shape)
+        fd = (c(x + h * v).energy - c(x - h * v).energy) / (2 * h)
+        assert fd == pytest.approx(np.sum(g * v), rel=1e-5)
+
+
+def test_contact_step_limit_stops_a_sheet_short_of_the_other():
+    """Upper sheet 0.3 mm above the lower one, an update moving it 0.5 mm down (through the
+    lower sheet): it meets the lower sheet at t = 0.3 / 0.5 and stops at 80 % of that:
+    alpha = 0.48, the sheets left 0.06 mm apart. Sheets 5 mm apart may take a 1 mm update whole, and so may a
+    sheet sliding along the other."""
+    from mvfem.contact import Contact
+
+    view, x = _two_sheets(0.3)
+    c = Contact(view, 0.5, 1e5, exclusion=0.2)
+    dx = np.zeros_like(x)
+    dx[len(x) // 2:, 2] = -0.5
+    alpha = c.step_limit(x, dx)
+    assert alpha == pytest.approx(0.48, rel=1e-12)
+    assert c.penetration(x + alpha * dx)["min_distance_mm"] == pytest.approx(0.06, rel=1e-9)
+    view, x = _two_sheets(5.0)
+    c = Contact(view, 0.5, 1e5, exclusion=0.2)
+    dx[len(x) // 2:, 2] = -1.0
+    assert c.step_limit(x, dx) == 1.0
+    # sliding 1.3 mm along the other sheet 0.3 mm away passes through nothing
+    view, x = _two_sheets(0.3)
+    c = Contact(view, 0.5, 1e5, exclusion=0.2)
+    dx = np.zeros_like(x)
+    dx[len(x) // 2:, :2] = [1.3, 0.4]
+    assert c.step_limit(x, dx) == 1.0
+    # ... but sliding while sinking 0.4 mm crosses the lower sheet at 3/4 of the update
+    # (where the moved nodes are still above it)
+    dx[len(x) // 2:, 2] = -0.4
+    assert c.step_limit(x, dx) == pytest.approx(0.8 * 0.75, rel=1e-9)
 
 
 @pytest.mark.mpi
