@@ -109,7 +109,7 @@ def _normals(x, tri):
 
 
 class Contact:
-    """Node-to-triangle penalty contact over a whole surface (rank 0 finds the pairs).
+    """Node-to-triangle barrier contact over a whole surface (rank 0 finds the pairs).
 
     Args:
         view: the global node view.
@@ -189,7 +189,8 @@ class Contact:
         if len(self.slaves) == 0 or len(cells) == 0:
             return empty
         # a triangle's points are within 2/3 of its longest edge of its centroid
-        grow = np.linalg.norm(x[cells[:, 1]] - x[cells[:, 0]], axis=1).max(initial=0.0)
+        xc = x[cells]
+        grow = float(np.linalg.norm(xc - np.roll(xc, 1, axis=1), axis=2).max(initial=0.0))
         s, t, _ = self._near(x, within + max(self._max_edge, grow))
         keep = self._admissible(s, t)
         s, t = s[keep], t[keep]
