@@ -103,6 +103,13 @@ def barrier(d: np.ndarray, delta: float, kappa) -> tuple[np.ndarray, ...]:
     return b, db, ddb
 
 
+def _tri_radius(x: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Distance from each triangle's centroid to its furthest vertex: every point of the
+    triangle is this close to the centroid (the KD-trees hold centroids)."""
+    xc = x[cells]
+    return np.linalg.norm(xc - xc.mean(axis=1)[:, None, :], axis=2).max(axis=1)
+
+
 def _normals(x, tri):
     n = np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]])
     return n / np.linalg.norm(n, axis=1)[:, None]
@@ -188,10 +195,7 @@ class Contact:
         empty = (np.zeros(0, dtype=np.int64),) * 2 + (np.zeros((0, 3)), np.zeros(0))
         if len(self.slaves) == 0 or len(cells) == 0:
             return empty
-        # a triangle's points are within 2/3 of its longest edge of its centroid
-        xc = x[cells]
-        grow = float(np.linalg.norm(xc - np.roll(xc, 1, axis=1), axis=2).max(initial=0.0))
-        s, t, _ = self._near(x, within + max(self._max_edge, grow))
+        s, t, _ = self._near(x, within + float(_tri_radius(x, cells).max(initial=0.0)))
         keep = self._admissible(s, t)
         s, t = s[keep], t[keep]
         tri = cells[t]
@@ -224,8 +228,7 @@ class Contact:
         cells = self.view.cells
         lo, hi = dx.min(axis=0), dx.max(axis=0)
         reach = 2 * float(np.linalg.norm(dx - (lo + hi) / 2, axis=1).max())
-        cent = x[cells].mean(axis=1)
-        r_tri = np.linalg.norm(x[cells] - cent[:, None, :], axis=2).max(axis=1)
+        r_tri = _tri_radius(x, cells)
         s, t, dc = self._near(x, reach + float(r_tri.max(initial=0.0)))
         tri = cells[t]
         w = dx[tri] - dx[s][:, None, :]                    # relative motion of the vertices
