@@ -19,9 +19,10 @@ nearest-triangle penalty with sides did not get the valve past its first contact
 cycling between pairings; a bounded quadratic penalty let chordae pull free-edge nodes onto
 the other leaflet, where Newton stalled). The price: a node opposite a vertex pairs with
 every triangle around it, so the contact stiffness varies by up to the vertex valence over
-the surface; the contact pressure at equilibrium still balances the load. The tangent is
-``A_s b'' dd dd^T`` (the curvature of ``d`` is left out; it keeps the tangent positive
-semi-definite).
+the surface; the contact pressure at equilibrium still balances the load. The tangent is the
+exact Hessian ``A_s (b'' dd dd^T + b' d2d)``, the curvature ``d2d`` by central differences of
+the exact gradient (:func:`distance_hessian`); it may be indefinite pair by pair (a node
+repelled by a vertex), the assembled tangent of a stable state is not.
 
 No crossing: the energy alone cannot stop a Newton update from carrying a node through a
 triangle in one jump (then the unsigned distance pushes it on through). :meth:`step_limit`
@@ -42,7 +43,8 @@ import numpy as np
 
 from mvfem.nodal import Blocks, NodalView
 
-__all__ = ["Contact", "closest_point_on_triangles", "barrier"]
+__all__ = ["Contact", "closest_point_on_triangles", "barrier", "distance_gradient",
+           "distance_hessian"]
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +83,35 @@ def closest_point_on_triangles(p, a, b, c):
         bb[:, j] = t[better]
         best_bary[better] = bb
     return best, best_bary, inside
+
+
+def distance_gradient(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from node to triangle and its gradient (m, 12) for stacked ``y`` = (node,
+    vertex a, b, c) coordinates (m, 12): by the envelope theorem, ``d d/d x_s = nu`` and
+    ``d d / d x_i = -xi_i nu`` with ``nu`` the unit vector from the closest point."""
+    m = len(y)
+    p, a, b, c = (y[:, 3 * i:3 * i + 3] for i in range(4))
+    d, xi, _ = closest_point_on_triangles(p, a, b, c)
+    q = xi[:, 0:1] * a + xi[:, 1:2] * b + xi[:, 2:3] * c
+    nu = (p - q) / np.maximum(d, 1e-300)[:, None]
+    coef = np.concatenate([np.ones((m, 1)), -xi], axis=1)
+    return d, (coef[:, :, None] * nu[:, None, :]).reshape(m, 12)
+
+
+def distance_hessian(y: np.ndarray, rel: float = 1e-4) -> np.ndarray:
+    """(m, 12, 12) Hessian of the node-triangle distance: central differences of its exact
+    gradient (:func:`distance_gradient`) with steps ``rel`` x the distance, symmetrised."""
+    m = len(y)
+    d, _ = distance_gradient(y)
+    h = np.maximum(rel * d, 1e-12)
+    H = np.empty((m, 12, 12))
+    for j in range(12):
+        e = np.zeros(12)
+        e[j] = 1.0
+        _, gp = distance_gradient(y + h[:, None] * e)
+        _, gm = distance_gradient(y - h[:, None] * e)
+        H[:, :, j] = (gp - gm) / (2 * h[:, None])
+    return 0.5 * (H + H.transpose(0, 2, 1))
 
 
 def barrier(d: np.ndarray, delta: float, kappa) -> tuple[np.ndarray, ...]:
@@ -319,6 +350,10 @@ class Contact:
         dd = coef[:, :, None] * nu[:, None, :]          # (m, 4, 3): d(d)/dx
         force = dphi[:, None, None] * dd
         flat = dd.reshape(m, 12)
-        K = ddphi[:, None, None] * flat[:, :, None] * flat[:, None, :]
+        # the full Hessian b'' dd dd^T + b' d2d: without the curvature of the distance
+        # (Gauss-Newton) Newton converged linearly and the demo needed twice the iterations
+        y = np.concatenate([x[s][:, None, :], x[tri]], axis=1).reshape(m, 12)
+        K = ddphi[:, None, None] * flat[:, :, None] * flat[:, None, :] \
+            + dphi[:, None, None] * distance_hessian(y)
         nodes = np.concatenate([s[:, None], tri], axis=1)
         return Blocks(nodes, force, K, float(phi.sum()))

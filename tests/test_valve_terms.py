@@ -362,3 +362,55 @@ def test_mesh_command_writes_the_valve_in_the_import_format(tmp_path):
     on = x[m.point_data["annulus"] != 0]
     assert len(on) > 20
     assert cKDTree(curve).query(on)[0].max() < 0.05
+
+
+def _projector(nu):
+    return np.eye(3) - np.outer(nu, nu)
+
+
+@pytest.mark.parametrize("region", ["face", "edge", "vertex"])
+def test_distance_hessian_matches_the_closed_forms_of_each_region(region):
+    """Node p above the triangle a = 0, b = (2, 0, 0), c = (0, 2, 0). Closed forms of the
+    Hessian of the distance: over the face d = z_p - z_plane has no curvature in p; beyond the
+    edge ab, d = |p - line ab| has d2d/dp2 = (I - nu nu^T - e e^T)/d; beyond the vertex a,
+    d = |p - a| has d2d/dp2 = d2d/da2 = -d2d/dpda = (I - nu nu^T)/d."""
+    from mvfem.contact import distance_gradient, distance_hessian
+
+    a, b, c = np.zeros(3), np.array([2.0, 0, 0]), np.array([0, 2.0, 0])
+    p = {"face": [0.5, 0.5, 0.3], "edge": [1.0, -0.4, 0.3], "vertex": [-0.3, -0.4, 0.2]}[region]
+    p = np.array(p)
+    y = np.concatenate([p, a, b, c])[None, :]
+    d, g = distance_gradient(y)
+    H = distance_hessian(y)[0]
+    Hpp = H[:3, :3]
+    if region == "face":
+        assert d[0] == pytest.approx(0.3)
+        np.testing.assert_allclose(Hpp, 0.0, atol=1e-6)
+    elif region == "edge":
+        nu = np.array([0.0, -0.4, 0.3]) / 0.5
+        e = np.array([1.0, 0, 0])
+        assert d[0] == pytest.approx(0.5)
+        np.testing.assert_allclose(Hpp, (_projector(nu) - np.outer(e, e)) / 0.5, atol=1e-6)
+    else:
+        nu = p / np.linalg.norm(p)
+        P = _projector(nu) / np.linalg.norm(p)
+        np.testing.assert_allclose(Hpp, P, atol=1e-6)
+        np.testing.assert_allclose(H[3:6, 3:6], P, atol=1e-6)
+        np.testing.assert_allclose(H[:3, 3:6], -P, atol=1e-6)
+        np.testing.assert_allclose(H[6:, :], 0.0, atol=1e-6)   # b and c do not matter
+    np.testing.assert_allclose(H, H.T, atol=1e-12)
+
+
+def test_contact_stiffness_is_the_derivative_of_its_forces():
+    """Shifted, perturbed sheets (faces, edges and vertices closest): the assembled contact
+    tangent equals central differences of the assembled forces (the curvature of the
+    distance included: without it the error is of the order of the tangent itself)."""
+    from mvfem.contact import Contact
+
+    view, x = _two_sheets(0.25, shift=0.37)
+    x = x + np.random.default_rng(5).normal(scale=0.04, size=x.shape)
+    c = Contact(view, 0.5, 1e5, exclusion=0.2)
+    nodes = np.unique(c(x).nodes)[::3]
+    f_err, k_err = _fd_check(c, x, nodes, h=1e-7)
+    assert f_err < 1e-5
+    assert k_err < 1e-6
