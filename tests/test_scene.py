@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from mvfem.errors import InputError
@@ -90,3 +92,11 @@ def test_example_scenes_validate():
     for path in scenes:
         s = load_scene(path)
         assert s["mesh"]["generator"] and s["region"]
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).parents[1] / "scripts" / "scenes")
+                                        .glob("*.toml")), ids=lambda p: p.stem)
+def test_example_scenes_load(path):
+    """Every example scene in scripts/scenes is valid (its files found relative to it)."""
+    scene = load_scene(path)
+    assert scene["load"]["pressure"] > 0

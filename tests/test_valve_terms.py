@@ -414,3 +414,45 @@ def test_contact_stiffness_is_the_derivative_of_its_forces():
     f_err, k_err = _fd_check(c, x, nodes, h=1e-7)
     assert f_err < 1e-5
     assert k_err < 1e-6
+
+
+def _sheet(x0, x1, y0, y1, z, n=9):
+    gx, gy = np.linspace(x0, x1, n), np.linspace(y0, y1, n)
+    X, Y = np.meshgrid(gx, gy, indexing="ij")
+    pts = np.c_[X.ravel(), Y.ravel(), np.full(n * n, z)]
+    q = [(i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1)
+         for i in range(n - 1) for j in range(n - 1)]
+    tri = np.array([(a, b, c) for a, b, c, d in q] + [(a, c, d) for a, b, c, d in q])
+    return pts, tri
+
+
+@pytest.mark.parametrize("case", ["slot", "overlap"])
+def test_gap_area_of_a_slot_and_of_overlapping_leaflets(case):
+    """Two flat 'leaflets' of length L = 8 clamped on their other three sides: a slot of width
+    w = 1.2 between their free edges has gap area L w; leaflets overlapping by 2 mm, h = 0.7
+    apart, have L h (the projected orifice of the latter is zero); coapting edges count 0."""
+    from mvfem.metrics import free_edges, gap_area
+
+    L, w, h = 8.0, 1.2, 0.7
+    if case == "slot":
+        p1, t1 = _sheet(0, L, -5, -w / 2, 0.0)
+        p2, t2 = _sheet(0, L, w / 2, 5, 0.0)
+        expected = L * w
+    else:
+        p1, t1 = _sheet(0, L, -5, 1, 0.0)
+        p2, t2 = _sheet(0, L, -1, 5, h)
+        expected = L * h
+    x = np.vstack([p1, p2])
+    cells = np.vstack([t1, t2 + len(p1)])
+    tag = np.r_[np.ones(len(t1), int), 2 * np.ones(len(t2), int)]
+    free_y = np.r_[np.full(len(p1), 1 if case == "overlap" else -w / 2),
+                   np.full(len(p2), -1 if case == "overlap" else w / 2)]
+    # clamped: every boundary node except those of the free edge (its two ends included)
+    fixed = ~np.isclose(x[:, 1], free_y) & ((x[:, 0] < 1e-9) | (x[:, 0] > L - 1e-9)
+                                            | (np.abs(x[:, 1]) > 5 - 1e-9))
+    fixed |= np.isclose(x[:, 1], free_y) & ((x[:, 0] < 1e-9) | (x[:, 0] > L - 1e-9))
+    edges = free_edges(cells, fixed)
+    assert len(edges) == 2 * 8
+    none = np.zeros(len(x), bool)
+    assert gap_area(x, cells, tag, edges, none) == pytest.approx(expected, rel=1e-12)
+    assert gap_area(x, cells, tag, edges, np.ones(len(x), bool)) == 0.0
