@@ -165,8 +165,7 @@ def _solve_and_report(scene_path, changes, out) -> int:
         fmt = lambda x, unit: "n/a" if x is None else f"{x:.3g} {unit}"  # noqa: E731
         _say(f"coaptation length {fmt(v.get('coaptation_length_mm'), 'mm')}, area "
              f"{fmt(v.get('coaptation_area_mm2'), 'mm2')}; regurgitant orifice "
-             f"{fmt(v.get('regurgitant_orifice_area_mm2'), 'mm2')}, gap "
-             f"{fmt(v.get('regurgitant_gap_area_mm2'), 'mm2')}; tenting "
+             f"{fmt(v.get('regurgitant_orifice_area_mm2'), 'mm2')}; tenting "
              f"{fmt(v.get('tenting_height_mm'), 'mm')}; max penetration "
              f"{fmt(s.get('max_penetration_mm'), 'mm')}")
     written = sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) \

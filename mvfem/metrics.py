@@ -14,13 +14,7 @@ contact pairs of the final state:
 - the regurgitant orifice area is the part of the annulus opening, seen along the axis, that no
   closed leaflet covers: the projected leaflets are rasterised (``PIXEL``), grown by half the
   contact thickness (the leaflets' own thickness closes a gap of one contact thickness), and
-  subtracted from the projected annulus polygon. It misses a leak between leaflets that
-  overlap in projection without touching (a prolapsing leaflet rides over the other), hence:
-- the regurgitant gap area: along each leaflet's free edge (boundary edges not on the clamped
-  annulus), the length of the edges whose nodes do not coapt times their distance to the
-  nearest other leaflet, summed and halved (a gap is bounded by two free edges): the
-  cross-section of the leak channel, a slot's area ``L w`` between free edges ``w`` apart, or
-  ``L h`` between overlapping leaflets ``h`` apart (:func:`gap_area`).
+  subtracted from the projected annulus polygon.
 """
 
 from __future__ import annotations
@@ -29,8 +23,7 @@ import numpy as np
 
 from mvfem.nodal import lumped_area
 
-__all__ = ["valve_metrics", "coapting_nodes", "orifice_area", "gap_area", "free_edges",
-           "COAPT_SLACK", "PIXEL"]
+__all__ = ["valve_metrics", "coapting_nodes", "orifice_area", "COAPT_SLACK", "PIXEL"]
 
 #: a pair coapts when its gap is below this multiple of the contact thickness
 COAPT_SLACK = 1.5
@@ -59,44 +52,6 @@ def coapting_nodes(contact, x: np.ndarray, cell_tag: np.ndarray) -> np.ndarray:
     node_tag = _node_tags(view.cells, cell_tag, len(view.X))
     mask[s[node_tag[s] != cell_tag[t]]] = True
     return mask
-
-
-def free_edges(cells: np.ndarray, fixed: np.ndarray) -> np.ndarray:
-    """(E, 2) boundary edges of a triangle mesh (in one triangle only) that are not on the
-    clamped boundary (both nodes ``fixed``): the leaflets' free edges."""
-    e = np.sort(np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]]), axis=1)
-    uniq, count = np.unique(e, axis=0, return_counts=True)
-    edge = uniq[count == 1]
-    return edge[~(fixed[edge[:, 0]] & fixed[edge[:, 1]])]
-
-
-def gap_area(x, cells, cell_tag, edges, coapting) -> float:
-    """Regurgitant gap area (mm^2): half the sum, over free ``edges`` not both of whose nodes
-    coapt, of edge length x the distance from its midpoint to the nearest triangle of another
-    leaflet (module docstring)."""
-    from mvfem.contact import closest_point_on_triangles
-
-    if len(edges) == 0:
-        return 0.0
-    node_tag = _node_tags(cells, cell_tag, len(x))
-    open_ = ~(coapting[edges[:, 0]] & coapting[edges[:, 1]])
-    total = 0.0
-    for tag in np.unique(cell_tag):
-        sel = open_ & (node_tag[edges[:, 0]] == tag)
-        others = cells[cell_tag != tag]
-        if not sel.any() or len(others) == 0:
-            continue
-        e = edges[sel]
-        mid = 0.5 * (x[e[:, 0]] + x[e[:, 1]])
-        length = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
-        # nearest other-leaflet triangle per midpoint: all pairs, in chunks
-        dist = np.full(len(mid), np.inf)
-        a, b, c = x[others[:, 0]], x[others[:, 1]], x[others[:, 2]]
-        for i in range(len(mid)):
-            d, _, _ = closest_point_on_triangles(np.repeat(mid[i:i + 1], len(others), 0), a, b, c)
-            dist[i] = d.min()
-        total += float(np.sum(length * dist))
-    return 0.5 * total
 
 
 def _node_tags(cells, cell_tag, n) -> np.ndarray:
@@ -211,10 +166,6 @@ def valve_metrics(model, x: np.ndarray) -> dict:
         out["regurgitant_orifice_area_mm2"] = orifice_area(x, view.cells, ann_loop, centre, n,
                                                            grow)
         out["annulus_area_mm2"] = orifice_area(x, view.cells[:0], ann_loop, centre, n, 0.0)
-        if contact is not None:
-            out["regurgitant_gap_area_mm2"] = gap_area(
-                x, view.cells, view.cell_tag, free_edges(view.cells, ~view.free.any(axis=1)),
-                flags)
     if model.chordae is not None and len(model.chordae):
         ch = model.chordae
         f = ch.force_N(x)
