@@ -22,7 +22,8 @@ from mpi4py import MPI
 from mvfem.errors import InputError, SolverError
 from mvfem.model import MAX_EXPONENT, Model, build_model, lumped_mass
 from mvfem.scene import Scene, load_scene
-from mvfem.solver import LoadStepper, SNESProblem, SolveInfo, StepRecord
+from mvfem.solver import (LoadStepper, PseudoTimeRecord, PseudoTransient, SNESProblem, SolveInfo,
+                          StepRecord)
 
 __all__ = ["solve", "Result", "check_converged"]
 
@@ -30,6 +31,8 @@ log = logging.getLogger(__name__)
 _ids = itertools.count()
 #: iteration budget of the solves that remove the stabiliser, x the scene's solver.max_it
 REMOVAL_ITERATIONS = 4
+#: default solver.max_steps of each method
+MAX_STEPS = {"load-steps": 400, "pseudo-time": 1500}
 
 
 @dataclass(frozen=True)
@@ -143,6 +146,25 @@ class _Progress:
             log.debug(msg)
 
 
+class _PseudoTimeProgress:
+    """A line every couple of seconds of a pseudo-time run on rank 0 (every step with -v)."""
+
+    def __init__(self, load_norm: float, enabled: bool):
+        self.f, self.enabled, self.t0 = load_norm, enabled, time.perf_counter()
+        self.next = 2.0
+
+    def __call__(self, rec: PseudoTimeRecord, ptc: PseudoTransient) -> None:
+        el = time.perf_counter() - self.t0
+        msg = (f"  pseudo-time step {rec.step:4d}  residual {rec.residual / self.f:9.3e} of the "
+               f"load  dt {1 / rec.weight:9.3g} mm/Pa  step x {rec.alpha:5.3f}"
+               f"  {'ok    ' if rec.accepted else 'refused'} {el:6.1f} s")
+        if self.enabled and rec.accepted and el >= self.next:
+            self.next = el + 2.0
+            log.info(msg)
+        else:
+            log.debug(msg)
+
+
 def _load_norm(model: Model) -> float:
     """||f_p||: the pressure load at the current pressure, free dofs only."""
     from dolfinx import fem
@@ -217,47 +239,13 @@ def _remove(attempt, get_state, set_state, k_start: float) -> tuple[bool, str]:
     return False, f"removing the start-up stabiliser failed at k = {k:.3g}: {info.reason}"
 
 
-def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COMM_WORLD,
-          progress: bool = True, write: bool = True) -> Result:
-    """Solve ``scene`` (collective on ``comm``); write outputs to ``out`` when given.
-
-    Raises:
-        InputError: the scene is invalid (nothing is written).
-    Returns:
-        A :class:`Result`; ``result.converged`` is False when the solver stopped short, in which
-        case the last converged state is what the outputs show.
-    """
-    from mvfem.outputs import prepare_out, write_outputs
-
-    t_start = time.perf_counter()
-    scene = load_scene(scene)
-    if out is not None:  # checked on rank 0, the verdict shared: no rank may run on alone
-        refused = None
-        if comm.rank == 0:
-            try:
-                prepare_out(out)
-            except InputError as e:
-                refused = str(e)
-        refused = comm.bcast(refused, root=0)
-        if refused:
-            raise InputError(refused)
-    model = build_model(scene, comm)
-    t_build = time.perf_counter() - t_start
-    s = scene["solver"]
-    model.pressure.value = model.p_target
-    load_norm = _load_norm(model)
-    model.pressure.value = 0.0
-    try:
-        problem = SNESProblem(model.residual, model.u, model.bcs, prefix=f"mvfem{next(_ids)}_",
-                              options=_petsc_options(model, load_norm),
-                              point_terms=model.point_terms)
-    except ValueError as e:
-        raise InputError(f"{scene.source}: solver.petsc_options: {e}") from None
+def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, load_norm: float,
+                tight_atol: float, mass, centre, progress: bool):
+    """Ramp the pressure; every load step settles in pseudo-time with proximal solves, then
+    the stabiliser is removed at full load. Returns (success, stop reason, load fraction
+    reached, accepted steps, Newton iterations)."""
     u = model.u
     n_owned = u.vector.getLocalSize()
-    centre = u.vector.copy()
-    mass = lumped_mass(model)
-    problem.set_proximal(model.stabiliser_scale, weights=mass, centre=centre)
     ramp = _RAMPS[s["ramp"]]
     last_converged = [u.x.array[:n_owned].copy()]  # the proximal centre
 
@@ -342,15 +330,11 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         progress_line(rec, stepper)
 
     # intermediate states need not be tight: the final state is (see _remove_stabiliser)
-    tight_atol = s["tolerance"] * load_norm
     problem.set_tolerances(atol=max(tight_atol, s["step_tolerance"] * load_norm))
     stepper = LoadStepper(set_load, settle_solve, get_state, set_state,
                           first_step=s["first_step"], min_step=s["min_step"],
-                          max_steps=s["max_steps"], on_step=on_step,
+                          max_steps=max_steps, on_step=on_step,
                           predictor=contact is None)  # an extrapolation could cross leaflets
-    if comm.rank == 0 and progress:
-        log.info(f"{scene.data['title'] or scene.source}: {model.V.dofmap.index_map.size_global * 3} "
-                 f"dofs, pressure {model.p_target / 1e3:g} kPa")
     reached, t_reached = stepper.run(1.0)
     t_reached = ramp(t_reached)
     stop_reason = stepper.stop_reason
@@ -362,6 +346,68 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
                                                    max(k_now[0], model.stabiliser_scale)
                                                    if policy.removal_from_current
                                                    else model.stabiliser_scale)
+    return final_ok, stop_reason, t_reached, stepper.converged_steps, stepper.newton_iterations
+
+
+def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COMM_WORLD,
+          progress: bool = True, write: bool = True) -> Result:
+    """Solve ``scene`` (collective on ``comm``); write outputs to ``out`` when given.
+
+    Raises:
+        InputError: the scene is invalid (nothing is written).
+    Returns:
+        A :class:`Result`; ``result.converged`` is False when the solver stopped short, in which
+        case the last converged state is what the outputs show.
+    """
+    from mvfem.outputs import prepare_out, write_outputs
+
+    t_start = time.perf_counter()
+    scene = load_scene(scene)
+    if out is not None:  # checked on rank 0, the verdict shared: no rank may run on alone
+        refused = None
+        if comm.rank == 0:
+            try:
+                prepare_out(out)
+            except InputError as e:
+                refused = str(e)
+        refused = comm.bcast(refused, root=0)
+        if refused:
+            raise InputError(refused)
+    model = build_model(scene, comm)
+    t_build = time.perf_counter() - t_start
+    s = scene["solver"]
+    model.pressure.value = model.p_target
+    load_norm = _load_norm(model)
+    model.pressure.value = 0.0
+    try:
+        problem = SNESProblem(model.residual, model.u, model.bcs, prefix=f"mvfem{next(_ids)}_",
+                              options=_petsc_options(model, load_norm),
+                              point_terms=model.point_terms)
+    except ValueError as e:
+        raise InputError(f"{scene.source}: solver.petsc_options: {e}") from None
+    u = model.u
+    centre = u.vector.copy()
+    mass = lumped_mass(model)
+    problem.set_proximal(model.stabiliser_scale, weights=mass, centre=centre)
+    tight_atol = s["tolerance"] * load_norm
+    method = s["method"]
+    if method == "auto":
+        method = "pseudo-time" if model.point_terms else "load-steps"
+    max_steps = s["max_steps"] or MAX_STEPS[method]
+    if comm.rank == 0 and progress:
+        log.info(f"{scene.data['title'] or scene.source}: {model.V.dofmap.index_map.size_global * 3} "
+                 f"dofs, pressure {model.p_target / 1e3:g} kPa, {method}")
+    ptc = None
+    if method == "pseudo-time":
+        model.pressure.value = model.p_target
+        ptc = PseudoTransient(problem, k0=model.stabiliser_scale, atol=tight_atol,
+                              max_steps=max_steps, on_step=_PseudoTimeProgress(load_norm, progress))
+        info = ptc.run()
+        final_ok, stop_reason, t_reached = info.converged, ptc.stop_reason, 1.0
+        load_steps, newton_its = ptc.accepted_steps, len(ptc.history)
+    else:
+        final_ok, stop_reason, t_reached, load_steps, newton_its = _load_steps(
+            model, problem, s, max_steps, load_norm, tight_atol, mass, centre, progress)
     problem.set_proximal(0.0)
     r_norm, f_norm = problem.residual_norm(), _load_norm(model)
     rel = r_norm / f_norm if f_norm > 0 else r_norm
@@ -377,7 +423,8 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     # disjoint: the point terms' share is taken out of the assembly and SNES times
     pt = model.point_terms
     t_pt, t_lim = (pt.time_s, pt.limit_s) if pt else (0.0, 0.0)
-    timing = {"assembly_s": problem.assembly_s - t_pt, "linear_solve_s": problem.solve_s - t_lim,
+    t_linear = problem.solve_s - t_lim + (ptc.solve_s if ptc is not None else 0.0)
+    timing = {"assembly_s": problem.assembly_s - t_pt, "linear_solve_s": t_linear,
               "contact_s": t_pt + t_lim, "build_s": t_build}
     if comm.rank == 0 and not converged:
         log.warning(f"solver stopped short at p = {t_reached * model.p_target / 1e3:.4g} kPa "
@@ -387,8 +434,9 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         "wall_time_s": wall,
         "dofs": model.V.dofmap.index_map.size_global * model.V.dofmap.index_map_bs,
         "cells": model.mesh.topology.index_map(2).size_global,
-        "load_steps": stepper.converged_steps,
-        "newton_iterations": stepper.newton_iterations,
+        "load_steps": load_steps,
+        "newton_iterations": newton_its,
+        "method": method,
         "pressure_Pa": (model.p_target if converged else t_reached * model.p_target),
         "target_pressure_Pa": model.p_target,
         "equilibrium_residual": rel,

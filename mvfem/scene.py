@@ -166,7 +166,11 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         "ramp": (_choice("cubic", "linear"), "cubic"),
         "first_step": (_pos, 0.1),
         "min_step": (_pos, 1e-5),
-        "max_steps": (_int(1), 400),
+        "max_steps": (_int(1), None),  # None: 400 load steps, 1500 pseudo-time steps
+        # pseudo-time: pseudo-transient continuation at the full load (one Newton step per
+        # pseudo-time step); load-steps: pressure ramp with inner proximal solves; auto:
+        # pseudo-time for scenes with chordae or contact, load steps otherwise
+        "method": (_choice("auto", "pseudo-time", "load-steps"), "auto"),
         "stabilisation": (_pos, 0.1),
         "petsc_options": (None, None),  # a table of PETSc options under the problem's prefix
     },
