@@ -20,15 +20,18 @@ surgeon's view):
   along the annulus so that rulings do not cross at sharp turns: a funnel) and the height
   profile
 
-  .. math:: H = h_c (1 - e^{-l/\\ell}) + (H_{max} - h_c)\\, g(\\tau),\\quad
-            g = 1 - (1 - \\sin \\pi\\tau)^q,
+  .. math:: H = h_c + (H_{max} - h_c)\\, g(\\tau),\\quad g = 1 - (1 - \\sin \\pi\\tau)^q,
 
-  ``tau`` in [0, 1] across the leaflet, ``l`` the arc length to the nearer commissure,
-  ``q = 1`` anterior (rounded), ``q = 2`` posterior (flatter, wide), and ``ell`` chosen so that
-  the free edge leaves the annulus at ``commissure_angle`` to it.
-- commissures: ``H = 0`` at the two commissure points, so both free edges end there. The two
-  leaflets share exactly these two annulus vertices and no edge: between them at each
-  commissure is a narrow V-shaped slit of opening ``2 (90 deg - commissure_angle)``.
+  ``tau`` in [0, 1] across the leaflet, ``q = 1`` anterior (rounded), ``q = 2`` posterior
+  (flatter, wide), ``h_c`` the commissural height; the tilt ``alpha`` blends the same way from
+  the mean of the two leaflets' tilts at the commissures to the leaflet's own.
+- commissures: the leaflets are one continuous curtain, as in the heart. At each commissure
+  both leaflets end on the same ruling, of height ``h_c`` (``commissure_height``), which is
+  an interior line of the mesh shared by the two leaflets; the free edge is one closed loop,
+  with a notch where the two leaflets' free edges meet below each commissure. (An earlier
+  design let each free edge run up to the annulus at the commissure, leaving a V-shaped slit
+  there; under pressure the slit's edges bulged past the annulus and the closure did not
+  converge, README.)
 
 Meshing: the ruled surfaces are sampled finely (a discrete gmsh model), reparametrised by gmsh
 (``createGeometry``) and remeshed with the target ``size``, graded to ``free_edge_size`` near
@@ -123,12 +126,13 @@ class ValveMesh(SurfaceMesh):
 def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0,
           saddle_height: float = 6.0, anterior_height: float = 24.0,
           posterior_height: float = 13.0, anterior_share: float = 150.0 / 360.0,
-          commissure_height: float = 6.0, commissure_angle: float = 80.0,
+          commissure_height: float = 6.0,
           anterior_angle: float = 20.0, posterior_angle: float = 25.0,
-          papillary_depth: float = 23.5, papillary_inset: float = 4.0,
+          papillary_depth: float = 23.5,
+          papillary_position: Sequence[float] = (0.25, 0.75),
           size: float = 1.0, free_edge_size: float = 0.5, refine_distance: float = 5.0,
           chordae_spacing: float = 2.5, coaptation_offset: float = 0.3,
-          closed_depth: float = 9.0,
+          closed_depth: float = 12.0,
           strut_points: Sequence[Sequence[float]] = ((0.3, 0.6), (0.7, 0.6)),
           basal_points: Sequence[Sequence[float]] = ((0.25, 0.3), (0.5, 0.3), (0.75, 0.3)),
           annulus: np.ndarray | None = None, papillary: np.ndarray | None = None,
@@ -147,29 +151,33 @@ def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0
         anterior_height: anterior leaflet height at its middle, annulus to free edge, mm.
         posterior_height: posterior leaflet height at its middle, mm.
         anterior_share: fraction of the annulus length taken by the anterior leaflet.
-        commissure_height: height the leaflets rise to within a few mm of a commissure, mm
-            (at most 3/4 of a leaflet's height).
-        commissure_angle: angle between annulus and free edge at a commissure, degrees
-            (< 90; the slit between the leaflets opens by twice its complement).
+        commissure_height: height of the leaflet curtain at the commissures (the ruling the
+            two leaflets share), mm (at most 3/4 of the shorter leaflet's height).
         anterior_angle: inward tilt of the anterior leaflet from the axis, degrees (0: hangs
             straight down; larger closes the funnel).
         posterior_angle: inward tilt of the posterior leaflet, degrees.
         papillary_depth: default tips: depth below the annulus plane, mm.
-        papillary_inset: default tips: distance inward (toward the axis) from below the
-            commissure, mm.
+        papillary_position: default tips: their position in the annulus plane as fractions
+            of the anterior (positive) or posterior (negative) half of the anteroposterior
+            extent and of the half commissural extent, one tip on each side: by default about
+            4 mm inside the commissures, a little anterior of the centre. (The patient tips of
+            ``data/kaiser_normal1`` sit further out and posterior, at about (-0.8, 0.9); with
+            the chordae designed as here the anterior leaflet then billows 8 mm into the
+            atrium and covers 80 % of the orifice, README.)
         size: target edge length, mm.
         free_edge_size: edge length at the free edges, mm (graded to ``size`` over
             ``refine_distance``).
         refine_distance: distance from the free edge over which the size grows, mm.
         chordae_spacing: marginal insertions: about one free-edge vertex per this arc length,
-            mm; the ends (within one spacing of a commissure) are left out.
+            mm, and one at each commissural notch.
         coaptation_offset: designed closed valve: how far the coaptation line lies toward
             the posterior annulus at the middle, as a fraction of the distance from the
             commissures' chord to the posterior annulus.
         closed_depth: designed closed valve: depth of the free edges at the middle below the
-            commissures' chord, mm (tenting height 5 + coaptation length 4 by default, the
-            healthy numbers of the data README). The chordae are just taut when their
-            insertions sit there (rest length = distance from the tip).
+            commissures' chord, mm. The chordae are just taut when their insertions sit
+            there (rest length = distance from the tip). The default 12 mm closes the
+            default valve with a tenting height of 5.5 mm and a coaptation length of 6 mm
+            (healthy: 5 +- 0.7 and 3-8 mm, data README; 9 mm gave 1.9 and 7.8 mm).
         strut_points: anterior strut insertions as ``(tau, r)``: fraction across the leaflet
             (from the posteromedial commissure) and fraction of the local height from the
             annulus.
@@ -199,14 +207,15 @@ def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0
     params = dict(ap_diameter=ap_diameter, commissural_diameter=commissural_diameter,
                   saddle_height=saddle_height, anterior_height=anterior_height,
                   posterior_height=posterior_height, anterior_share=anterior_share,
-                  commissure_height=commissure_height, commissure_angle=commissure_angle,
+                  commissure_height=commissure_height,
                   anterior_angle=anterior_angle, posterior_angle=posterior_angle,
-                  papillary_depth=papillary_depth, papillary_inset=papillary_inset,
+                  papillary_depth=papillary_depth,
                   size=size, free_edge_size=free_edge_size, refine_distance=refine_distance,
                   chordae_spacing=chordae_spacing, annulus_modes=annulus_modes,
                   coaptation_offset=coaptation_offset, closed_depth=closed_depth,
                   ruling_smoothing=ruling_smoothing)
     params = {k: (int(v) if k == "annulus_modes" else float(v)) for k, v in params.items()}
+    params["papillary_position"] = [float(a) for a in papillary_position]
     params["strut_points"] = [[float(a) for a in p] for p in strut_points]
     params["basal_points"] = [[float(a) for a in p] for p in basal_points]
 
@@ -293,12 +302,10 @@ def _build_on_root(p: dict, annulus, papillary, anterior_direction):
 
     # papillary tips in the local frame, their muscles
     if papillary is None:
-        tips = []
-        for s in (s_c, -s_c):  # anterolateral (+y), posteromedial (-y)
-            c = curve.point(s)
-            inward = -c[:2] / np.linalg.norm(c[:2])
-            tips.append([*(c[:2] + p["papillary_inset"] * inward), -p["papillary_depth"]])
-        tips = np.array(tips)
+        fx, fy = p["papillary_position"]
+        x_half = -curve.x[:, 0].min() if fx < 0 else curve.x[:, 0].max()
+        tips = np.array([[fx * x_half, fy * curve.x[:, 1].max(), -p["papillary_depth"]],
+                         [fx * x_half, fy * curve.x[:, 1].min(), -p["papillary_depth"]]])
         muscle = np.array([0, 1], dtype=np.int32)
     else:
         tips = (papillary - origin) @ frame.T
@@ -361,13 +368,14 @@ def _check(p: dict) -> None:
               "chordae_spacing", "papillary_depth"):
         if not p[k] > 0:
             raise ValueError(f"valve: {k} must be positive, got {p[k]}")
-    for k in ("saddle_height", "papillary_inset", "ruling_smoothing"):
+    for k in ("saddle_height", "ruling_smoothing"):
         if not p[k] >= 0:
             raise ValueError(f"valve: {k} must be >= 0, got {p[k]}")
     if not 0.1 <= p["anterior_share"] <= 0.9:
         raise ValueError(f"valve: anterior_share must be in [0.1, 0.9], got {p['anterior_share']}")
-    if not 30.0 <= p["commissure_angle"] < 90.0:
-        raise ValueError("valve: commissure_angle must be in [30, 90) degrees")
+    if p["commissure_height"] > 0.75 * min(p["anterior_height"], p["posterior_height"]):
+        raise ValueError("valve: commissure_height must not exceed 3/4 of the shorter leaflet's "
+                         f"height, got {p['commissure_height']}")
     for k in ("anterior_angle", "posterior_angle"):
         if not 0.0 <= p[k] < 80.0:
             raise ValueError(f"valve: {k} must be in [0, 80) degrees, got {p[k]}")
@@ -375,6 +383,10 @@ def _check(p: dict) -> None:
         raise ValueError("valve: free_edge_size must not exceed size")
     if p["annulus_modes"] < 2:
         raise ValueError("valve: annulus_modes must be >= 2")
+    pp = p["papillary_position"]
+    if len(pp) != 2 or not all(-1.5 <= a <= 1.5 for a in pp):
+        raise ValueError(f"valve: papillary_position must be two fractions in [-1.5, 1.5], "
+                         f"got {pp}")
     for k in ("strut_points", "basal_points"):
         for tr in p[k]:
             if len(tr) != 2 or not (0 < tr[0] < 1 and 0 < tr[1] <= 1):
@@ -522,32 +534,33 @@ class _Leaflet:
         self.arc = (s1 - s0) * curve.length
         self.height = p[f"{name}_height"]
         self.alpha = math.radians(p[f"{name}_angle"])
+        # both leaflets meet the commissural ruling with the same tilt
+        self.alpha_c = math.radians(0.5 * (p["anterior_angle"] + p["posterior_angle"]))
         self.q = _PROFILE[name]
-        self.hc = min(p["commissure_height"], 0.75 * self.height)
-        # free edge leaves the annulus at commissure_angle: H'(0) = hc/ell + (H - hc) g'(0)/arc
-        slope = math.tan(math.radians(p["commissure_angle"]))
-        rest = (self.height - self.hc) * self.q * math.pi / self.arc
-        self.ell = self.hc / max(slope - rest, 0.5 * slope)
+        self.hc = p["commissure_height"]
 
     def describe(self) -> dict:
         return {"arc_length_mm": float(self.arc), "height_mm": float(self.height),
-                "commissure_height_mm": float(self.hc), "commissure_ramp_mm": float(self.ell),
+                "commissure_height_mm": float(self.hc),
                 "tilt_deg": math.degrees(self.alpha), "profile_q": self.q,
                 "mean_height_mm": float(self.heights(np.linspace(0, 1, 2001)).mean())}
 
     def s(self, tau):
         return self.s0 + np.asarray(tau) * (self.s1 - self.s0)
 
-    def heights(self, tau):
+    def _g(self, tau):
         tau = np.clip(np.asarray(tau, dtype=float), 0.0, 1.0)
-        dist = np.minimum(tau, 1.0 - tau) * self.arc
-        g = 1.0 - (1.0 - np.sin(np.pi * tau)) ** self.q
-        return self.hc * (1.0 - np.exp(-dist / self.ell)) + (self.height - self.hc) * g
+        # sin(pi min(tau, 1 - tau)): exactly 0 at both ends, so neighbouring leaflets' end
+        # rulings are sampled alike
+        return 1.0 - (1.0 - np.sin(np.pi * np.minimum(tau, 1.0 - tau))) ** self.q
+
+    def heights(self, tau):
+        return self.hc + (self.height - self.hc) * self._g(tau)
 
     def direction(self, tau):
         n_in = self.curve.inward(self.s(tau))
-        return (-math.cos(self.alpha) * np.array([0.0, 0.0, 1.0])
-                + math.sin(self.alpha) * n_in)
+        alpha = (self.alpha_c + (self.alpha - self.alpha_c) * self._g(tau))[..., None]
+        return -np.cos(alpha) * np.array([0.0, 0.0, 1.0]) + np.sin(alpha) * n_in
 
     def point(self, tau, r):
         """X(tau, r) = A + r H d."""
@@ -561,31 +574,30 @@ class _Leaflet:
         mapped onto the ruled surface.
 
         Returns:
-            ``(X, tri, annulus, free)``: points (n, 3); triangles (m, 3) oriented along
+            ``(X, tri, annulus, free, ends)``: points (n, 3); triangles (m, 3) oriented along
             cross(dX/dtau, dX/dr) (the atrial side); the annulus and free-edge vertices in order
-            of increasing tau. Both curves start and end at the two commissure points (vertices
-            ``annulus[0] == free[0]`` and ``annulus[-1] == free[-1]``).
+            of increasing tau; the two commissural rulings (at tau = 0 and tau = 1), each from
+            the annulus to the free edge. The curves share their end vertices (``annulus[0] ==
+            ends[0][0]``, ``free[0] == ends[0][-1]``, ...). The rulings are sampled the same
+            way for every leaflet, so that neighbouring leaflets' rulings coincide.
         """
         from scipy.spatial import Delaunay
 
         nt = max(int(math.ceil(self.arc / h)), 16)
         tau = np.linspace(0.0, 1.0, nt + 1)
         H = self.heights(tau)
-        H[[0, -1]] = 0.0
-        xi, eta, kind = [], [], []  # kind: 0 interior, 1 annulus, 2 free edge, 3 commissure
+        xi, eta, kind, col = [], [], [], []  # kind: 0 interior, 1 annulus, 2 free edge
         for i, (t, hh) in enumerate(zip(tau, H)):
-            if i in (0, nt):
-                xi.append(t), eta.append(0.0), kind.append(3)
-                continue
             m = max(int(math.ceil(hh / h)), 1)
-            if i % 2:  # stagger alternate columns: near-equilateral triangles
+            if i % 2 and i != nt:  # stagger alternate columns: near-equilateral triangles
                 rr = np.concatenate([[0.0], (np.arange(m) + 0.5) / m, [1.0]])
             else:
                 rr = np.linspace(0.0, 1.0, m + 1)
             xi += [t] * len(rr)
             eta += list(rr * hh)
             kind += [1] + [0] * (len(rr) - 2) + [2]
-        xi, eta, kind = np.array(xi), np.array(eta), np.array(kind)
+            col += [i] * len(rr)
+        xi, eta, kind, col = np.array(xi), np.array(eta), np.array(kind), np.array(col)
         plane = np.column_stack([xi * self.arc, eta])
         tri = Delaunay(plane).simplices
         # keep triangles inside the domain eta <= H(xi) (drop hull triangles above the edge)
@@ -609,10 +621,10 @@ class _Leaflet:
                              "the annulus turns sharply): lower its height or tilt, or raise "
                              "ruling_smoothing")
         order = np.argsort(xi, kind="stable")
-        ends = order[kind[order] == 3]
-        annulus = np.concatenate([[ends[0]], order[kind[order] == 1], [ends[-1]]])
-        free = np.concatenate([[ends[0]], order[kind[order] == 2], [ends[-1]]])
-        return X, tri, annulus, free
+        annulus = order[kind[order] == 1]
+        free = order[kind[order] == 2]
+        ends = tuple(np.flatnonzero(col == c)[np.argsort(eta[col == c])] for c in (0, nt))
+        return X, tri, annulus, free, ends
 
 
 # --- meshing ---------------------------------------------------------------------------------
@@ -649,10 +661,9 @@ def _remesh(gmsh, leaflets: dict, p: dict):
     h_fine = max(0.5 * min(p["free_edge_size"], p["size"]), 0.25)
     ref_centroids, ref_normals = [], []
     model = gmsh.model
-    # commissure points: 1 anterolateral (s = +share/2), 2 posteromedial (s = -share/2)
+    # points: 1, 2 the anterolateral (s = +share/2) and posteromedial (s = -share/2)
+    # commissures on the annulus, 3, 4 the feet of their rulings on the free edge
     fine = {name: lf.sample(h_fine) for name, lf in leaflets.items()}
-    xa, _, ann_a, _ = fine["anterior"]
-    c_al, c_pm = xa[ann_a[-1]], xa[ann_a[0]]
     next_tag = [1]
 
     def new_nodes(n):
@@ -660,31 +671,52 @@ def _remesh(gmsh, leaflets: dict, p: dict):
         next_tag[0] += n
         return tags
 
-    pts = {}
-    for tag, x in ((1, c_al), (2, c_pm)):
-        model.addDiscreteEntity(0, tag)
-        nt = new_nodes(1)
-        model.mesh.addNodes(0, tag, nt, x)
-        pts[tag] = nt[0]
-    # per leaflet: annulus curve, free edge curve (both from the commissure at tau = 0 to
-    # the one at tau = 1), surface
+    # curves: annulus and free edge of each leaflet from its tau = 0 end to its tau = 1 end,
+    # and the two commissural rulings (annulus -> free edge), shared by both leaflets
     curve_tag = {"anterior": (1, 2), "posterior": (3, 4)}
+    ruling_tag = {"al": 5, "pm": 6}
+    corner = {"al": (1, 3), "pm": (2, 4)}       # (annulus point, free-edge point)
     surf_tag = {"anterior": 1, "posterior": 2}
-    ends = {"anterior": (2, 1), "posterior": (1, 2)}  # (point at tau = 0, at tau = 1)
-    for name, (X, tri, ann, free) in fine.items():
-        p0, p1 = ends[name]
+    sides = {"anterior": ("pm", "al"), "posterior": ("al", "pm")}  # commissure at tau = 0, 1
+    point_node: dict[int, int] = {}
+    ruling_nodes: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # tags, coordinates
+    for name in ("anterior", "posterior"):
+        X, tri, ann, free, ends = fine[name]
         tag_of = np.zeros(len(X), dtype=np.int64)
-        tag_of[ann[0]], tag_of[ann[-1]] = pts[p0], pts[p1]
+        for side, line in zip(sides[name], ends):
+            for ptag, v in zip(corner[side], (line[0], line[-1])):
+                if ptag not in point_node:
+                    model.addDiscreteEntity(0, ptag)
+                    point_node[ptag] = int(new_nodes(1)[0])
+                    model.mesh.addNodes(0, ptag, [point_node[ptag]], X[v])
+                tag_of[v] = point_node[ptag]
+            inner = line[1:-1]
+            if side not in ruling_nodes:
+                a, b = corner[side]
+                model.addDiscreteEntity(1, ruling_tag[side], [a, b])
+                tags = new_nodes(len(inner))
+                model.mesh.addNodes(1, ruling_tag[side], tags, X[inner].ravel())
+                ruling_nodes[side] = (tags, X[inner])
+                lt = np.concatenate([[point_node[a]], tags, [point_node[b]]])
+                model.mesh.addElementsByType(ruling_tag[side], 1, [],
+                                             np.column_stack([lt[:-1], lt[1:]]).ravel())
+            tags, xs = ruling_nodes[side]
+            if len(xs) != len(inner) or (len(xs) and np.abs(xs - X[inner]).max() > 1e-9):
+                raise RuntimeError("valve: the leaflets' commissural rulings do not coincide")
+            tag_of[inner] = tags
+        p0 = (corner[sides[name][0]], corner[sides[name][1]])
         ca, cf = curve_tag[name]
-        for ctag, line in ((ca, ann), (cf, free)):
-            model.addDiscreteEntity(1, ctag, [p0, p1])
+        for ctag, line, (a, b) in ((ca, ann, (p0[0][0], p0[1][0])),
+                                   (cf, free, (p0[0][1], p0[1][1]))):
+            model.addDiscreteEntity(1, ctag, [a, b])
             tags = new_nodes(len(line) - 2)
             model.mesh.addNodes(1, ctag, tags, X[line[1:-1]].ravel())
             tag_of[line[1:-1]] = tags
             lt = tag_of[line]
             model.mesh.addElementsByType(ctag, 1, [], np.column_stack([lt[:-1],
                                                                        lt[1:]]).ravel())
-        model.addDiscreteEntity(2, surf_tag[name], [ca, cf])
+        model.addDiscreteEntity(2, surf_tag[name], [ca, ruling_tag[sides[name][1]], cf,
+                                                    ruling_tag[sides[name][0]]])
         inner = np.flatnonzero(tag_of == 0)
         tag_of[inner] = new_nodes(len(inner))
         model.mesh.addNodes(2, surf_tag[name], tag_of[inner], X[inner].ravel())
@@ -741,6 +773,8 @@ def _insertions(points, cells, cell_values, edges, edge_values, leaflets, tips, 
         targets = arc[-1] * np.arange(1, n + 1) / (n + 1)
         pick = np.unique([int(np.argmin(np.abs(arc - t))) for t in targets])
         pick = pick[(pick > 0) & (pick < len(path) - 1)]
+        if name == "anterior":  # the commissural notches, shared by both free edges: once
+            pick = np.concatenate([[0], pick, [len(path) - 1]])
         for i in pick:
             out_pts.append(xs[i])
             out_leaf.append(value)

@@ -373,15 +373,15 @@ def _chordae(scene: Scene, surface, view):
     node = view.node_of_point(surface.insertion_points)
     anchor = surface.papillary_tips[surface.insertion_tip]
     # imported trees: path length along the tree; generated valves: the length that makes the
-    # chord just taut with its insertion where the designed closed valve puts it
+    # chord just taut with its insertion where the designed closed valve puts it. Chordae are
+    # designed for the closed valve: in the open (stress-free) valve some are slack and some
+    # already pull (the posterior ones; README, "Chordae")
     length = getattr(surface, "insertion_path_length", None)
     if length is None or len(length) != len(node):
         target = getattr(surface, "insertion_closed", None)
         if target is None or len(target) != len(node):
             target = surface.insertion_points
-        # never shorter than in the open valve, which is the stress-free reference state
-        length = np.maximum(np.linalg.norm(target - anchor, axis=1),
-                            np.linalg.norm(surface.insertion_points - anchor, axis=1))
+        length = np.linalg.norm(target - anchor, axis=1)
     family = np.asarray(surface.insertion_family)
     factor = np.array([fams[f]["length_factor"] for f in family])
     rest = factor * length

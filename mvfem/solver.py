@@ -350,7 +350,7 @@ class PseudoTimeRecord:
 
 @dataclass
 class PseudoTransient:
-    """Pseudo-transient continuation (Kelley and Keyes 1998) of ``F(u) = 0``.
+    r"""Pseudo-transient continuation (Kelley and Keyes 1998) of ``F(u) = 0``.
 
     Each pseudo-time step is one Newton step on ``k M (u - u_n) + F(u) = 0`` from ``u_n``:
 

@@ -206,12 +206,26 @@ def test_default_tags_partition_and_boundary(default_valve):
     for name in ("anterior", "posterior"):
         cells = np.concatenate([f2c.links(f) for f in groups[f"free_edge_{name}"]] or [[]])
         assert np.all(cell_value[cells.astype(np.int32)] == v.names[name])
-    # the leaflets share only the two commissure vertices (annulus points)
+    # the leaflets are one curtain: they share the two commissural rulings, lines of about
+    # commissure_height (6 mm) from each commissure down to the free edge, and nothing else
     owned_cells = [msh.geometry.dofmap.array.reshape(-1, 3)[v.cells(k)] for k in
                    ("anterior", "posterior")]
     gid = np.asarray(msh.geometry.input_global_indices)
     ant, post = (set(_gathered(comm, gid[c].ravel()).tolist()) for c in owned_cells)
-    assert len(ant & post) == 2
+    shared = np.array(sorted(ant & post))
+    ids = _gathered(comm, gid)
+    xyz = _gathered(comm, msh.geometry.x)
+    x_of = dict(zip(ids.tolist(), xyz))
+    xs = np.array([x_of[i] for i in shared])
+    d = np.linalg.norm(xs[:, None] - v.commissures[None], axis=2).min(axis=1)
+    h = v.info["commissure_height"]
+    assert d.min() < 1e-9 and d.max() == pytest.approx(h, rel=0.05)
+    assert 2 * (h / v.info["size"]) <= len(shared) <= 2 * (h / v.info["free_edge_size"] + 2)
+    # the free edge is one closed loop through both notches
+    fe = np.concatenate([_owned(v, 1, f"free_edge_{k}") for k in ("anterior", "posterior")])
+    g = cpp.mesh.entities_to_geometry(_cpp_mesh(msh), 1, fe, False).reshape(-1, 2)
+    _, degree = np.unique(_gathered(comm, gid[g].ravel()), return_counts=True)
+    assert np.all(degree == 2)
 
 
 def test_default_quality_and_info(default_valve):
@@ -264,10 +278,10 @@ def test_default_insertion_points(default_valve):
     assert np.array_equal(v.papillary_muscle[v.insertion_tip], v.insertion_muscle)
     side = np.where(P[:, 1] >= 0, 0, 1)
     assert np.array_equal(side, v.insertion_muscle)
-    # under the commissures, a little inward
-    r_tip = np.linalg.norm(v.papillary_tips[:, :2], axis=1)
-    r_com = np.linalg.norm(v.commissures[:, :2], axis=1)
-    assert np.allclose(r_com - r_tip, 4.0)
+    # papillary_position (0.25, 0.75): a quarter of the way toward the anterior annulus (AP
+    # 28 mm) and three quarters of the way toward each commissure (37 mm)
+    assert np.allclose(v.papillary_tips[:, :2], [[0.25 * 14, 0.75 * 18.5],
+                                                 [0.25 * 14, -0.75 * 18.5]], atol=0.01)
 
 
 def test_orifice_is_open(default_valve):
