@@ -204,6 +204,9 @@ def _cmd_mesh(args) -> int:
         raise InputError(f"--out {out}: exists; choose another name or pass --force")
     if out.suffix.lower() not in (".vtu", ".vtk", ".xdmf", ".msh", ".stl", ".ply", ".obj"):
         raise InputError(f"--out {out}: unknown mesh format {out.suffix!r} (use .vtu, .xdmf, ...)")
+    if args.kind == "valve" and out.suffix.lower() not in (".vtu", ".vtk", ".xdmf"):
+        raise InputError(f"--out {out}: a valve file keeps its chordae as line cells: use .vtu, "
+                         ".vtk or .xdmf")
     m = {"generator": args.kind, "size": args.size, "radius": args.radius, "side": args.side,
          "length": args.length, "refinements": args.refinements}
     try:
@@ -220,10 +223,10 @@ def _cmd_mesh(args) -> int:
     if surface.cell_tags is not None:
         tags[surface.cell_tags.indices] = surface.cell_tags.values
     out.parent.mkdir(parents=True, exist_ok=True)
-    if args.kind == "valve":  # the import format of CONTRACT.md: leaflet cells, annulus points
-        from mvfem.meshes import write_valve
+    if args.kind == "valve":  # the import format of CONTRACT.md: leaflets, annulus, chordae
+        from mvfem.meshes.imported import write_valve_with_chordae
 
-        write_valve(out, surface)
+        write_valve_with_chordae(out, surface)
     else:
         write_surface(out, x, cells, cell_data={"region": tags})
     surface.write_info(str(out) + ".json")

@@ -133,6 +133,13 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
             raw = meshes.read_surface(m["file"])
         except ValueError as e:
             raise InputError(f"{scene.source}: mesh.file: {e}") from None
+        if "annulus" in raw.point_data:  # a valve: annulus, free edges, chordae, as generated
+            from mvfem.meshes.imported import valve_from_surface
+
+            try:
+                return valve_from_surface(comm, raw, m["labels"], source=m["file"])
+            except ValueError as e:
+                raise InputError(f"{scene.source}: mesh.file: {e}") from None
         values = raw.cell_data.get("leaflet")
         msh, tags = meshes.to_dolfinx(comm, raw, values)
         names = {v: int(k) for k, v in (m["labels"] or {}).items()}

@@ -316,6 +316,17 @@ def _check_valve_files(mesh: dict, base_dir: Path) -> None:
         mesh[key] = str(p)
 
 
+def _has_annulus(path: str) -> bool:
+    """Whether a mesh file has point data 'annulus' (an imported valve); a file that cannot
+    be read is reported when the mesh is built."""
+    from mvfem.meshes.io import read_surface
+
+    try:
+        return "annulus" in read_surface(path).point_data
+    except ValueError:
+        return False
+
+
 def _check_fibres(fib: dict) -> None:
     d = fib["direction"]
     if isinstance(d, str):
@@ -378,6 +389,9 @@ def _validate(raw: dict, base_dir: Path) -> dict:
         data["boundary"]["clamp"] = "rigid"  # a closed surface has no boundary to clamp
     if gen == "valve" and "clamp" not in raw.get("boundary", {}):
         data["boundary"]["clamp"] = "annulus"
+    if (gen == "file" and "clamp" not in raw.get("boundary", {})
+            and _has_annulus(data["mesh"]["file"])):
+        data["boundary"]["clamp"] = "annulus"  # an imported valve, clamped like a generated one
     valve_keys = [k for k in _VALVE_KEYS if data["mesh"][k] is not None]
     if valve_keys and gen != "valve":
         raise _Bad(f"mesh.{valve_keys[0]}", "only for generator = \"valve\"")
