@@ -257,14 +257,20 @@ class Contact:
         if len(self.slaves) == 0 or not np.any(dx):
             return 1.0
         cells = self.view.cells
-        lo, hi = dx.min(axis=0), dx.max(axis=0)
-        reach = 2 * float(np.linalg.norm(dx - (lo + hi) / 2, axis=1).max())
         r_tri = _tri_radius(x, cells)
-        s, t, dc = self._near(x, reach + float(r_tri.max(initial=0.0)))
+        s, t, dc = self._swept_candidates(x, dx, r_tri)
         tri = cells[t]
         w = dx[tri] - dx[s][:, None, :]                    # relative motion of the vertices
         # the pair's distance is at least dc - r_tri and closes by at most max |w|
         can = (dc - r_tri[t] <= np.linalg.norm(w, axis=2).max(axis=1))
+        # the node's path and the triangle's swept box must overlap (margin: the crossing
+        # test's tolerance)
+        pad = 1e-3 * max(self._max_edge, 1e-12)
+        ps, pe = x[s], x[s] + dx[s]
+        vs, ve = x[tri], x[tri] + dx[tri]
+        lo_t = np.minimum(vs.min(axis=1), ve.min(axis=1)) - pad
+        hi_t = np.maximum(vs.max(axis=1), ve.max(axis=1)) + pad
+        can &= np.all((np.maximum(ps, pe) >= lo_t) & (np.minimum(ps, pe) <= hi_t), axis=1)
         can[can] = self._admissible(s[can], t[can])
         s, t, tri, w = s[can], t[can], tri[can], w[can]
         if len(s) == 0:
@@ -280,6 +286,14 @@ class Contact:
                          det(wa, ub, uc) + det(ua, wb, uc) + det(ua, ub, wc),
                          det(wa, wb, uc) + det(wa, ub, wc) + det(ua, wb, wc),
                          det(wa, wb, wc)], axis=1)
+        # a cubic whose Bernstein coefficients on [0, 1] share one strict sign has no root
+        # there (convex hull property): most candidate pairs never reach coplanarity
+        c0, c1, c2, c3 = coef.T
+        bern = np.stack([c0, c0 + c1 / 3, c0 + (2 * c1 + c2) / 3, c0 + c1 + c2 + c3], axis=1)
+        may = (bern.min(axis=1) <= 0) & (bern.max(axis=1) >= 0)
+        s, t, tri, coef, u = s[may], t[may], tri[may], coef[may], u[may]
+        if len(s) == 0:
+            return 1.0
         first = self._first_crossing(coef, x[s], dx[s], x[tri], dx[tri])
         alpha = min(1.0, (1 - keep) * float(first.min(initial=np.inf)))
         if alpha < 0.05 and log.isEnabledFor(logging.DEBUG):
@@ -290,6 +304,55 @@ class Contact:
                       f"|dx| {np.linalg.norm(dx[s[i]]):.3g} mm) through triangle {t[i]} "
                       f"(tag {v.cell_tag[t[i]]}), distance {np.linalg.norm(u[i].mean(0)):.3g}")
         return alpha
+
+    def _swept_candidates(self, x: np.ndarray, dx: np.ndarray, r_tri: np.ndarray,
+                          classes: int = 6):
+        """(node, triangle) pairs, slaves only, that the update ``dx`` could bring together,
+        with their centroid distance ``dc``: a pair's distance closes by at most ``|dx_s| +
+        m_T`` (``m_T`` the largest motion of a vertex of ``T``), so it needs ``dc <= 2
+        max(|dx_s|, m_T) + r_T``. Nodes and triangles are grouped by their motion (halving
+        classes), and each group searched with its own radius: a leaflet swinging shut moves
+        everywhere, but pairs only within the reach of their own motion are candidates."""
+        from scipy.spatial import cKDTree
+
+        cells = self.view.cells
+        motion = np.linalg.norm(dx, axis=1)
+        m_node = motion[self.slaves]
+        m_tri = motion[cells].max(axis=1)
+        top = max(float(m_node.max(initial=0.0)), float(m_tri.max(initial=0.0)))
+        if top == 0.0:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
+        r_max = float(r_tri.max(initial=0.0))
+        cent = x[cells].mean(axis=1)
+        node_tree, cent_tree = cKDTree(x[self.slaves]), cKDTree(cent)
+        found = []
+        hi = top
+        for k in range(classes):
+            lo = 0.0 if k == classes - 1 else hi / 2
+            radius = 2 * hi + r_max
+            ns = np.flatnonzero((m_node > lo) & (m_node <= hi)) if k else \
+                np.flatnonzero(m_node > lo)
+            ts = np.flatnonzero((m_tri > lo) & (m_tri <= hi)) if k else np.flatnonzero(m_tri > lo)
+            if len(ns):
+                h = cKDTree(x[self.slaves[ns]]).sparse_distance_matrix(
+                    cent_tree, radius, output_type="ndarray")
+                found.append((ns[h["i"]], h["j"].astype(np.int64), h["v"]))
+            if len(ts):
+                h = node_tree.sparse_distance_matrix(cKDTree(cent[ts]), radius,
+                                                     output_type="ndarray")
+                found.append((h["i"].astype(np.int64), ts[h["j"]], h["v"]))
+            hi = lo
+            if hi == 0.0:
+                break
+        if not found:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
+        si = np.concatenate([f[0] for f in found])
+        tj = np.concatenate([f[1] for f in found])
+        dc = np.concatenate([f[2] for f in found])
+        key, first = np.unique(si * len(cells) + tj, return_index=True)
+        si, tj, dc = si[first], tj[first], dc[first]
+        keep = dc - r_tri[tj] <= m_node[si] + m_tri[tj]
+        return self.slaves[si[keep]], tj[keep], dc[keep]
 
     def _first_crossing(self, coef, p, dp, v, dv, samples: int = 16) -> np.ndarray:
         """Earliest t in [0, 1] where each moving node passes through its moving triangle
@@ -352,8 +415,10 @@ class Contact:
         flat = dd.reshape(m, 12)
         # the full Hessian b'' dd dd^T + b' d2d: without the curvature of the distance
         # (Gauss-Newton) Newton converged linearly and the demo needed twice the iterations
-        y = np.concatenate([x[s][:, None, :], x[tri]], axis=1).reshape(m, 12)
-        K = ddphi[:, None, None] * flat[:, :, None] * flat[:, None, :] \
-            + dphi[:, None, None] * distance_hessian(y)
+        def stiffness() -> np.ndarray:
+            y = np.concatenate([x[s][:, None, :], x[tri]], axis=1).reshape(m, 12)
+            return ddphi[:, None, None] * flat[:, :, None] * flat[:, None, :] \
+                + dphi[:, None, None] * distance_hessian(y)
+
         nodes = np.concatenate([s[:, None], tri], axis=1)
-        return Blocks(nodes, force, K, float(phi.sum()))
+        return Blocks(nodes, force, stiffness, float(phi.sum()))

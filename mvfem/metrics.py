@@ -83,10 +83,25 @@ def _section(x, cells, flags, origin, normal):
     return np.array(segs), np.array(fl)
 
 
+def _inside_polygon(ring: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """(len(gx), len(gy)) mask of the grid points inside the closed polygon ``ring`` (k, 2),
+    by the even-odd rule, one scanline per ``gy`` (a point-in-polygon test of every grid point
+    took 5 s for the demo's 4096-vertex annulus)."""
+    a, b = ring, np.roll(ring, -1, axis=0)
+    out = np.zeros((len(gx), len(gy)), dtype=bool)
+    for j, y in enumerate(gy):
+        cross = (a[:, 1] <= y) != (b[:, 1] <= y)
+        if not cross.any():
+            continue
+        a_, b_ = a[cross], b[cross]
+        xs = np.sort(a_[:, 0] + (y - a_[:, 1]) * (b_[:, 0] - a_[:, 0]) / (b_[:, 1] - a_[:, 1]))
+        out[:, j] = np.searchsorted(xs, gx) % 2 == 1
+    return out
+
+
 def orifice_area(x, cells, annulus_loop, centre, axis, grow: float) -> float:
     """Area (mm^2) of the projected annulus polygon not covered by the projected triangles
     grown by ``grow`` mm."""
-    from matplotlib.path import Path
     from scipy import ndimage
 
     e1 = np.cross(axis, [1.0, 0.0, 0.0])
@@ -101,7 +116,7 @@ def orifice_area(x, cells, annulus_loop, centre, axis, grow: float) -> float:
     gx = lo[0] + (np.arange(nx) + 0.5) * PIXEL
     gy = lo[1] + (np.arange(ny) + 0.5) * PIXEL
     X, Y = np.meshgrid(gx, gy, indexing="ij")
-    inside = Path(ring).contains_points(np.c_[X.ravel(), Y.ravel()]).reshape(nx, ny)
+    inside = _inside_polygon(ring, gx, gy)
     covered = np.zeros((nx, ny), dtype=bool)
     q = P(x)[cells]  # (C, 3, 2)
     i0 = np.floor((q.min(axis=1) - lo) / PIXEL).astype(int)

@@ -15,15 +15,12 @@ search and the tethers cost milliseconds. Rows and columns of Dirichlet dofs are
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-
 import numpy as np
 from petsc4py import PETSc
 
 __all__ = ["Blocks", "NodalView", "PointTerms", "smooth_penalty", "lumped_area"]
 
 
-@dataclass
 class Blocks:
     """Element contributions of a point term: ``m`` elements of ``k`` nodes each.
 
@@ -31,14 +28,21 @@ class Blocks:
         nodes: (m, k) global node indices.
         force: (m, k, 3) gradient of the term's energy with respect to each node's position
             (Pa mm^2 = uN: the residual's unit).
-        stiffness: (m, 3k, 3k) Hessian blocks, rows ordered node-major (x, y, z of node 0, ...).
+        stiffness: (m, 3k, 3k) Hessian blocks, rows ordered node-major (x, y, z of node 0, ...);
+            a term may pass a function that computes them, called on first access (a residual
+            evaluated at a trial state that is then refused never needs them).
         energy: the term's energy (Pa mm^3 = uJ).
     """
 
-    nodes: np.ndarray
-    force: np.ndarray
-    stiffness: np.ndarray
-    energy: float = 0.0
+    def __init__(self, nodes: np.ndarray, force: np.ndarray, stiffness, energy: float = 0.0):
+        self.nodes, self.force, self.energy = nodes, force, energy
+        self._stiffness = stiffness
+
+    @property
+    def stiffness(self) -> np.ndarray:
+        if callable(self._stiffness):
+            self._stiffness = self._stiffness()
+        return self._stiffness
 
 
 def smooth_penalty(d: np.ndarray, k, eps) -> tuple[np.ndarray, ...]:

@@ -367,6 +367,10 @@ class PseudoTransient:
     the residual tested is that of ``F`` alone, with no damping term, so the state returned
     when ``||F|| <= atol`` needs no removal of a stabiliser.
 
+    ``max_move`` caps the largest displacement component of one update (the first updates
+    from a slack state are wild: hundreds of mm, refused anyway, and expensive to check for
+    collisions).
+
     A slack structure (a valve swinging shut, a flat Fung membrane with no stiffness) thus
     moves at the pace its tangent allows, with one factorisation per step (README: on the
     demo valve 180 steps where load stepping with inner pseudo-time solves took 855 Newton
@@ -382,6 +386,7 @@ class PseudoTransient:
     max_growth: float = 3.0
     shrink: float = 4.0
     max_rejections: int = 30
+    max_move: float | None = None
     on_step: Callable[[PseudoTimeRecord, "PseudoTransient"], None] | None = None
     history: list[PseudoTimeRecord] = field(default_factory=list)
     stop_reason: str = ""
@@ -422,8 +427,12 @@ class PseudoTransient:
                 self.solve_s += time.perf_counter() - t0
                 du.scale(-1.0)
                 alpha = 1.0
+                if self.max_move is not None:  # wild early updates: cheaper to check, refused
+                    top = du.norm(PETSc.NormType.INFINITY)
+                    if top > self.max_move:
+                        alpha = self.max_move / top
                 if limited:
-                    alpha = pb.point_terms.step_limit(x.array_r, du.array_r)
+                    alpha *= pb.point_terms.step_limit(x.array_r, alpha * du.array_r)
                 x.copy(trial)
                 trial.axpy(alpha, du)
                 r_new = pb.evaluate_residual(trial)
