@@ -21,8 +21,11 @@ from mvfem.nodal import Blocks, smooth_penalty
 
 __all__ = ["Chordae"]
 
-#: rounding of the slack-to-taut transition, as a fraction of the rest length
-ONSET = 1e-3
+#: rounding of the slack-to-taut transition, as a fraction of the rest length: of the order of
+#: the toe region of chordae (collagen uncrimping, a few % strain). With 1e-3 a chord that
+#: hovered at its rest length switched its full stiffness on and off between Newton iterates,
+#: and the prolapsing valve's end game cycled (README, "Solving")
+ONSET = 2e-2
 
 
 @dataclass

@@ -362,7 +362,12 @@ class PseudoTransient:
     ||F_{n+1}|| / ||F_n||`` (the ratio clipped to ``[1/max_growth, 1/min_growth]``, so ``dt``
     grows at least ``min_growth``-fold after every accepted step); a step whose residual is not
     finite (the exponential laws overflowed) or grew more than ``reject``-fold is refused and
-    ``k`` multiplied by ``shrink``. As ``k -> 0`` the steps become Newton's, and the iteration
+    ``k`` multiplied by ``shrink``. Once ``k`` has fallen below its start ``k0`` (Newton's
+    regime), every later update must lower the residual, after up to ``backtracks`` halvings,
+    or it is refused: the end game cannot cycle. After ``restart_after`` refusals in a row there
+    (the residual is only piecewise smooth where contact pairs change from face to edge), the
+    run moves in pseudo-time again from the current state with ``k = restart_weight k0``, at
+    most ``restarts`` times. As ``k -> 0`` the steps become Newton's, and the iteration
     converges quadratically. Every state is an equilibrium candidate of the problem as posed:
     the residual tested is that of ``F`` alone, with no damping term, so the state returned
     when ``||F|| <= atol`` needs no removal of a stabiliser.
@@ -387,6 +392,11 @@ class PseudoTransient:
     shrink: float = 4.0
     max_rejections: int = 30
     max_move: float | None = None
+    backtracks: int = 4
+    k_min: float = 1e-12
+    restart_after: int = 10
+    restarts: int = 5
+    restart_weight: float = 1e3
     on_step: Callable[[PseudoTimeRecord, "PseudoTransient"], None] | None = None
     history: list[PseudoTimeRecord] = field(default_factory=list)
     stop_reason: str = ""
@@ -408,12 +418,18 @@ class PseudoTransient:
             if not np.isfinite(r):
                 self.stop_reason = "the residual of the initial state is not finite"
                 return SolveInfo(False, 0, "DIVERGED_FNORM_NAN", r)
-            k, in_a_row, its = self.k0, 0, 0
+            k, in_a_row, its, monotone, restarts = self.k0, 0, 0, False, 0
             while r > self.atol:
                 if its >= self.max_steps:
                     self.stop_reason = (f"residual {r:.3g} above the tolerance {self.atol:.3g} "
                                         f"after {its} pseudo-time steps (solver.max_steps)")
                     break
+                if monotone and in_a_row >= self.restart_after and restarts < self.restarts:
+                    # the end game is stuck (the residual is only piecewise smooth where
+                    # contact pairs change regions): move in pseudo-time again from here
+                    monotone, in_a_row, restarts = False, 0, restarts + 1
+                    k = self.restart_weight * self.k0
+                    log.debug(f"    pseudo-time restart {restarts} at residual {r:.3g}")
                 if in_a_row >= self.max_rejections:
                     self.stop_reason = (f"{in_a_row} pseudo-time steps refused in a row "
                                         f"(dt = {1 / k:.3g}): no admissible step")
@@ -438,6 +454,20 @@ class PseudoTransient:
                 r_new = pb.evaluate_residual(trial)
                 ok = bool(np.isfinite(r_new)) and r_new <= self.reject * r and \
                     ksp.getConvergedReason() > 0
+                monotone = monotone or k < self.k0
+                if ok and r_new >= r and monotone:
+                    # Newton's regime (dt large): from here on every update must lower the
+                    # residual, by backtracking if need be, else it is refused and damping grows
+                    # (Newton cycled between two states at dt ~ 1e300 on the prolapsing valve)
+                    ok = False
+                    for _ in range(self.backtracks):
+                        alpha *= 0.5
+                        x.copy(trial)
+                        trial.axpy(alpha, du)
+                        r_new = pb.evaluate_residual(trial)
+                        if np.isfinite(r_new) and r_new < r:
+                            ok = True
+                            break
                 rec = PseudoTimeRecord(its, k, alpha, r_new, ok)
                 self.history.append(rec)
                 if self.on_step is not None:
@@ -449,7 +479,10 @@ class PseudoTransient:
                     continue
                 in_a_row = 0
                 ratio = min(max(r / r_new, 1.0 / self.max_growth), self.max_growth)
-                k = min(k / ratio, k / self.min_growth)
+                # dt grows after every accepted step, at least min_growth-fold: the residual of
+                # a valve swinging shut rises and falls as the leaflets meet, and shrinking dt
+                # when it rose let the demo crawl (no convergence in 1500 steps, README)
+                k = max(min(k / ratio, k / self.min_growth), self.k_min * self.k0)
                 trial.copy(x)
                 r = r_new
             converged = r <= self.atol
