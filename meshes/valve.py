@@ -113,6 +113,39 @@ class ValveMesh(SurfaceMesh):
     commissures: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
     annulus_curve: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
+    def along_leaflet(self, points: np.ndarray, leaflet: str) -> np.ndarray:
+        """Position of points of a leaflet along it: the arc length of the annulus, from the
+        posteromedial (0) to the anterolateral (1) commissure through the leaflet's middle, of
+        the annulus point in the same direction from the axis (seen from the atrium).
+        Carpentier's segments A1/P1, A2/P2, A3/P3 are its anterolateral, middle and
+        posteromedial thirds."""
+        loop = np.asarray(self.annulus_curve, dtype=float)
+        ring = (loop - self.centre) @ self.frame.T
+        seg = np.linalg.norm(np.roll(ring, -1, axis=0) - ring, axis=1)
+        s = np.concatenate([[0.0], np.cumsum(seg)[:-1]])           # arc length of each vertex
+        ang_ring = np.arctan2(ring[:, 1], ring[:, 0])
+
+        def arc(p):
+            local = (np.asarray(p, dtype=float).reshape(-1, 3) - self.centre) @ self.frame.T
+            a = np.arctan2(local[:, 1], local[:, 0])
+            d = np.abs(np.angle(np.exp(1j * (a[:, None] - ang_ring[None, :]))))
+            return s[np.argmin(d, axis=1)]
+
+        total = float(seg.sum())
+        s_al, s_pm = arc(self.commissures)
+        x = arc(points)
+        mid = arc(self.centre + (1.0 if leaflet == "anterior" else -1.0) * self.frame[0])[0]
+        # the way from the posteromedial commissure through the middle (the loop runs
+        # counter-clockwise about the axis, from the anterior midpoint)
+        fwd = (mid - s_pm) % total <= (s_al - s_pm) % total
+        span = (s_al - s_pm) % total if fwd else (s_pm - s_al) % total
+        start = s_pm if fwd else s_al
+        # signed arc length from the leaflet's middle (never half the loop away), so that
+        # points just beyond a commissure come out just outside [0, 1]
+        centre = (start + 0.5 * span) % total
+        off = (x - centre + 0.5 * total) % total - 0.5 * total
+        return 0.5 + (off if fwd else -off) / span
+
     def insertions(self, family: str | None = None, leaflet: str | None = None) -> np.ndarray:
         """Indices (into ``insertion_points``) of one family and/or one leaflet."""
         keep = np.ones(len(self.insertion_points), dtype=bool)

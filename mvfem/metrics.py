@@ -14,7 +14,16 @@ contact pairs of the final state:
 - the regurgitant orifice area is the part of the annulus opening, seen along the axis, that no
   closed leaflet covers: the projected leaflets are rasterised (``PIXEL``), grown by half the
   contact thickness (the leaflets' own thickness closes a gap of one contact thickness), and
-  subtracted from the projected annulus polygon.
+  subtracted from the projected annulus polygon;
+- the leak gap area sees what the projection cannot: leaflets that overlap seen from the atrium
+  without touching (a prolapsing segment rising past the other leaflet) leave a channel between
+  them. In sections across the coaptation line (planes spanned by the axis and the
+  anteroposterior direction, every ``SECTION_STEP`` mm from commissure to commissure) it takes
+  the smallest distance between the traces of the two leaflets, less the contact thickness
+  (touching leaflets seal), and integrates it along the line: a channel of width ``w`` over a
+  length ``L`` gives ``(w - delta) L``, like the projected hole of a slot of that width;
+- the regurgitant orifice area reported is the larger of the two (each is a lower bound of the
+  narrowest cross-section the jet passes).
 """
 
 from __future__ import annotations
@@ -23,12 +32,15 @@ import numpy as np
 
 from mvfem.nodal import lumped_area
 
-__all__ = ["valve_metrics", "coapting_nodes", "orifice_area", "COAPT_SLACK", "PIXEL"]
+__all__ = ["valve_metrics", "coapting_nodes", "orifice_area", "leak_gap_area",
+           "segment_distance", "COAPT_SLACK", "PIXEL", "SECTION_STEP"]
 
 #: a pair coapts when its gap is below this multiple of the contact thickness
 COAPT_SLACK = 1.5
 #: raster size of the orifice area (mm)
 PIXEL = 0.05
+#: spacing of the sections of the leak gap area (mm)
+SECTION_STEP = 0.25
 
 
 def _frame(annulus: np.ndarray, axis_hint: np.ndarray):
@@ -142,6 +154,59 @@ def orifice_area(x, cells, annulus_loop, centre, axis, grow: float) -> float:
     return float(np.sum(inside & ~covered) * PIXEL**2)
 
 
+def segment_distance(p0, p1, q0, q1) -> np.ndarray:
+    """Distances between segments ``[p0, p1]`` and ``[q0, q1]`` (row-wise, (m, 3) each): the
+    clamped closest points of the two lines (Ericson, Real-Time Collision Detection 5.1.9),
+    degenerate (point) segments included."""
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a = np.einsum("ij,ij->i", d1, d1)
+    e = np.einsum("ij,ij->i", d2, d2)
+    b = np.einsum("ij,ij->i", d1, d2)
+    c = np.einsum("ij,ij->i", d1, r)
+    f = np.einsum("ij,ij->i", d2, r)
+    eps = 1e-24
+    pa, pe = a > eps, e > eps
+    safe = lambda v: np.where(v != 0, v, 1.0)  # noqa: E731
+    den = a * e - b * b
+    s = np.where(pa & pe & (den > 1e-12 * a * e), (b * f - c * e) / safe(den), 0.0)
+    s = np.where(pa & ~pe, -c / safe(a), s)
+    s = np.clip(s, 0.0, 1.0)
+    t = np.where(pe, (b * s + f) / safe(e), 0.0)
+    t_c = np.clip(t, 0.0, 1.0)
+    s = np.where(pa & (t != t_c), np.clip((t_c * b - c) / safe(a), 0.0, 1.0), s)
+    return np.linalg.norm(p0 + s[:, None] * d1 - (q0 + t_c[:, None] * d2), axis=1)
+
+
+def leak_gap_area(x, cells_a, cells_b, origin, axis, along, span, thickness) -> tuple:
+    """Leak gap area (mm^2) between two leaflets (triangles ``cells_a``, ``cells_b`` into the
+    positions ``x``), and the gap per section: sections are the planes through ``origin + y
+    along`` with normal ``along`` (a unit vector across the coaptation line, perpendicular to
+    ``axis``) for ``y`` in ``span`` (from, to) every :data:`SECTION_STEP` mm. Sections where
+    one leaflet has no trace do not count.
+
+    Returns:
+        (area, y, gap) with ``gap = max(0, smallest distance - thickness)`` per section.
+    """
+    y0, y1 = span
+    n = max(int(np.ceil((y1 - y0) / SECTION_STEP)), 1)
+    ys = y0 + (np.arange(n) + 0.5) * (y1 - y0) / n
+    gaps = np.full(n, np.nan)
+    flags = np.zeros(len(x), dtype=bool)
+    for i, y in enumerate(ys):
+        o = origin + y * along
+        sa, _ = _section(x, cells_a, flags, o, along)
+        sb, _ = _section(x, cells_b, flags, o, along)
+        if len(sa) == 0 or len(sb) == 0:
+            continue
+        ia, ib = np.meshgrid(np.arange(len(sa)), np.arange(len(sb)), indexing="ij")
+        ia, ib = ia.ravel(), ib.ravel()
+        d = segment_distance(sa[ia, 0], sa[ia, 1], sb[ib, 0], sb[ib, 1]).min()
+        gaps[i] = max(d - thickness, 0.0)
+    ok = np.isfinite(gaps)
+    area = float(np.sum(gaps[ok]) * (y1 - y0) / n)
+    return area, ys, gaps
+
+
 def valve_metrics(model, x: np.ndarray) -> dict:
     """The ``valve`` block of summary.json (rank 0), with the coapting-node mask under
     ``"_coapting"`` (removed before writing)."""
@@ -178,8 +243,12 @@ def valve_metrics(model, x: np.ndarray) -> dict:
         out["coaptation_length_per_leaflet_mm"] = lengths
         out["tenting_height_mm"] = (-max(depths)) if depths else None
         grow = 0.5 * contact.thickness if contact is not None else 0.0
-        out["regurgitant_orifice_area_mm2"] = orifice_area(x, view.cells, ann_loop, centre, n,
-                                                           grow)
+        projected = orifice_area(x, view.cells, ann_loop, centre, n, grow)
+        leak = _leak_between_leaflets(surface, view, x, centre, n, ap, section_normal,
+                                      2 * grow, names)
+        out["projected_orifice_area_mm2"] = projected
+        out["leak_gap_area_mm2"] = leak
+        out["regurgitant_orifice_area_mm2"] = max(projected, leak if leak is not None else 0.0)
         out["annulus_area_mm2"] = orifice_area(x, view.cells[:0], ann_loop, centre, n, 0.0)
     if model.chordae is not None and len(model.chordae):
         ch = model.chordae
@@ -195,3 +264,22 @@ def valve_metrics(model, x: np.ndarray) -> dict:
         out["chordae_force_N"] = None
     out["_coapting"] = flags
     return out
+
+
+def _leak_between_leaflets(surface, view, x, centre, axis, ap, across, thickness, names):
+    """:func:`leak_gap_area` between the anterior leaflet and the rest (or the two largest
+    labels), from commissure to commissure; None without two leaflets or commissures."""
+    tags = np.unique(view.cell_tag)
+    comm_pts = np.asarray(getattr(surface, "commissures", np.zeros((0, 3))))
+    if len(tags) < 2 or len(comm_pts) != 2:
+        return None
+    by_name = {names.get(int(t), str(t)): t for t in tags}
+    if "anterior" in by_name:
+        first = view.cell_tag == by_name["anterior"]
+    else:
+        counts = [(np.sum(view.cell_tag == t), t) for t in tags]
+        first = view.cell_tag == max(counts)[1]
+    ys = sorted(float((c - centre) @ across) for c in comm_pts)
+    area, _, _ = leak_gap_area(x, view.cells[first], view.cells[~first], centre, axis,
+                               across, ys, thickness)
+    return area

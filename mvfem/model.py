@@ -368,15 +368,35 @@ def _point_terms(model: Model) -> None:
     model.point_terms = PointTerms(view, terms)
 
 
+#: Carpentier's segments as fractions along a leaflet from the posteromedial commissure
+SEGMENTS = {"3": (0.0, 1 / 3), "2": (1 / 3, 2 / 3), "1": (2 / 3, 1.0)}
+
+
 def _chordae(scene: Scene, surface, view):
-    """Tethers of the valve's chordae insertions, with the scene's family parameters."""
+    """Tethers of the valve's chordae insertions, with the scene's family parameters and
+    edits (``[[chordae.edit]]``: lengthened, shortened or ruptured chords)."""
+    from mvfem.chordae import Chordae
+
+    chords, error = None, None
+    if view.comm.rank == 0:
+        try:
+            chords = _chordae_on_root(scene, surface, view)
+        except InputError as e:
+            error = str(e)
+    error = view.comm.bcast(error, root=0)
+    if error:
+        raise InputError(error)
+    if view.comm.rank != 0:
+        return Chordae(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0),
+                       np.zeros(0, dtype="<U8"))
+    return chords
+
+
+def _chordae_on_root(scene: Scene, surface, view):
     from mvfem.chordae import Chordae
 
     fams = scene["chordae"]
     names = {v: k for k, v in (surface.names or {}).items()}
-    if view.comm.rank != 0:
-        return Chordae(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0),
-                       np.zeros(0, dtype="<U8"))
     node = view.node_of_point(surface.insertion_points)
     anchor = surface.papillary_tips[surface.insertion_tip]
     # imported trees: path length along the tree; generated valves: the length that makes the
@@ -394,7 +414,30 @@ def _chordae(scene: Scene, surface, view):
     rest = factor * length
     EA = np.array([fams[f]["modulus"] * fams[f]["area"] for f in family])  # Pa mm^2
     leaflet = np.array([names.get(int(t), str(t)) for t in surface.insertion_leaflet])
-    return Chordae(node, anchor, rest, EA / rest, family, leaflet)
+    keep = np.ones(len(node), dtype=bool)
+    for i, e in enumerate(fams["edit"]):
+        sel = np.ones(len(node), dtype=bool)
+        if e["leaflet"] is not None:
+            sel &= leaflet == e["leaflet"]
+        if e["family"] is not None:
+            sel &= family == e["family"]
+        span = e["between"] or (SEGMENTS[e["segment"][1]] if e["segment"] else None)
+        if span is not None:
+            pos = np.full(len(node), np.nan)
+            for name in np.unique(leaflet[sel]):
+                on = sel & (leaflet == name)
+                pos[on] = surface.along_leaflet(surface.insertion_points[on], str(name))
+            sel &= (pos >= span[0]) & (pos <= span[1])
+        if not sel.any():
+            raise InputError(f"{scene.source}: chordae.edit[{i}]: selects no chord of this valve "
+                             f"(leaflets: {', '.join(sorted(set(leaflet)))}; families: "
+                             f"{', '.join(sorted(set(family)))})")
+        if e["rupture"]:
+            keep &= ~sel
+        else:
+            rest[sel] *= e["length_factor"]
+    return Chordae(node[keep], anchor[keep], rest[keep], EA[keep] / rest[keep], family[keep],
+                   leaflet[keep])
 
 
 def _rigid_pins(V, scene: Scene) -> list:

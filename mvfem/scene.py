@@ -140,6 +140,7 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         "marginal": (None, {}),    # family tables: checked in _check_chordae
         "strut": (None, {}),
         "basal": (None, {}),
+        "edit": (None, []),        # list of tables: checked in _check_chordae
     },
     "bending": {
         # hinge bending stiffness D = modulus x h^3 / 12 (forms/bending.py); None: 100 kPa for
@@ -292,9 +293,55 @@ def _check_mesh(mesh: dict, base_dir: Path) -> None:
         mesh["labels"] = out
 
 
+def _fraction_pair(path, v):
+    if (not isinstance(v, (list, tuple)) or len(v) != 2
+            or any(isinstance(c, bool) or not isinstance(c, (int, float)) for c in v)
+            or not 0.0 <= v[0] < v[1] <= 1.0):
+        raise _Bad(path, f"expected [from, to] with 0 <= from < to <= 1, got {v!r}")
+    return [float(v[0]), float(v[1])]
+
+
+#: one edit of the chordae a scene's valve has: which chords (all criteria given must hold)
+#: and what happens to them
+_EDIT = {
+    "leaflet": (_str, None),
+    "family": (_choice(*CHORD_FAMILIES), None),
+    # Carpentier segments: 1 anterolateral, 2 middle, 3 posteromedial thirds of a leaflet
+    "segment": (_choice("a1", "a2", "a3", "p1", "p2", "p3"), None),
+    # fraction along the leaflet's free edge from the posteromedial (0) to the
+    # anterolateral (1) commissure
+    "between": (_fraction_pair, None),
+    "length_factor": (_pos, None),   # multiplies the rest length
+    "rupture": (_bool, False),       # removes the chords
+}
+
+
 def _check_chordae(ch: dict) -> None:
     for fam in CHORD_FAMILIES:
         ch[fam] = _check_table(f"chordae.{fam}", ch[fam], _FAMILY)
+    edits = ch["edit"]
+    if isinstance(edits, dict):
+        edits = [edits]
+    if not isinstance(edits, list):
+        raise _Bad("chordae.edit", f"expected a list of tables [[chordae.edit]], got {edits!r}")
+    out = []
+    for i, e in enumerate(edits):
+        path = f"chordae.edit[{i}]"
+        e = _check_table(path, e, _EDIT)
+        if e["segment"] is not None and e["between"] is not None:
+            raise _Bad(f"{path}.between", "give either segment or between, not both")
+        if e["length_factor"] is None and not e["rupture"]:
+            raise _Bad(path, "says neither length_factor nor rupture = true")
+        if e["length_factor"] is not None and e["rupture"]:
+            raise _Bad(f"{path}.rupture", "a ruptured chord has no length_factor")
+        if e["segment"] is not None:
+            named = {"a": "anterior", "p": "posterior"}[e["segment"][0]]
+            if e["leaflet"] not in (None, named):
+                raise _Bad(f"{path}.segment", f"{e['segment'].upper()} is on the {named} leaflet, "
+                           f"not the {e['leaflet']} one")
+            e["leaflet"] = named
+        out.append(e)
+    ch["edit"] = out
 
 
 def _check_valve_files(mesh: dict, base_dir: Path) -> None:

@@ -418,3 +418,152 @@ def test_contact_stiffness_is_the_derivative_of_its_forces():
     f_err, k_err = _fd_check(c, x, nodes, h=1e-7)
     assert f_err < 1e-5
     assert k_err < 1e-6
+
+
+# --- the leak gap and chordae edits -------------------------------------------------------------
+
+DEMO = __import__("pathlib").Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml"
+
+def _strip(x0, x1, y0, y1, z, n=8):
+    """A flat rectangle [x0, x1] x [y0, y1] at height z as 2 n^2 triangles."""
+    gx, gy = np.linspace(x0, x1, n + 1), np.linspace(y0, y1, n + 1)
+    X, Y = np.meshgrid(gx, gy, indexing="ij")
+    pts = np.c_[X.ravel(), Y.ravel(), np.full(X.size, z)]
+    tri = [(i * (n + 1) + j, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1)
+           for i in range(n) for j in range(n)]
+    tri += [(i * (n + 1) + j, (i + 1) * (n + 1) + j + 1, i * (n + 1) + j + 1)
+            for i in range(n) for j in range(n)]
+    return pts, np.array(tri)
+
+
+def _two_leaflets(a, b):
+    pa, ta = a
+    pb, tb = b
+    return np.vstack([pa, pb]), ta, tb + len(pa)
+
+
+def test_segment_distance_matches_dense_sampling():
+    from mvfem.metrics import segment_distance
+
+    rng = np.random.default_rng(3)
+    p0, p1, q0, q1 = (rng.normal(size=(300, 3)) for _ in range(4))
+    p1[:20] = p0[:20]                      # points
+    q1[20:40] = q0[20:40] + 0.5 * (p1 - p0)[20:40]   # parallel
+    d = segment_distance(p0, p1, q0, q1)
+    t = np.linspace(0, 1, 801)
+    a = p0[:, None] + t[None, :, None] * (p1 - p0)[:, None]
+    b = q0[:, None] + t[None, :, None] * (q1 - q0)[:, None]
+    dense = np.array([np.linalg.norm(a[i][:, None] - b[i][None], axis=2).min()
+                      for i in range(len(d))])
+    assert np.all(d <= dense + 1e-12)              # a true minimum ...
+    assert np.all(dense - d < 2.5e-3)              # ... the samples approach it
+
+
+def test_leak_gap_of_a_slot_and_of_overlapping_leaflets():
+    """Sections every 0.25 mm across y in [-5, 5] (L = 10 mm); contact thickness 0.5 mm.
+    A slot of width w = 2 between two coplanar leaflets leaks (w - 0.5) L = 15 mm^2; the
+    projected orifice sees the same slot, narrowed to 1.5 mm by growing each leaflet by
+    0.25 mm, inside an elliptic annulus (area in closed form). Leaflets that
+    overlap by 3 mm seen along the axis but lie h = 1.5 mm apart leak (h - 0.5) L = 10 mm^2,
+    and the projection sees nothing; touching leaflets (0.3 mm apart) leak nothing."""
+    from mvfem.metrics import leak_gap_area
+
+    axis, across = np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])
+    x, ca, cb = _two_leaflets(_strip(1.0, 8.0, -5, 5, 0.0), _strip(-8.0, -1.0, -5, 5, 0.0))
+    area, ys, gaps = leak_gap_area(x, ca, cb, np.zeros(3), axis, across, (-5.0, 5.0), 0.5)
+    assert area == pytest.approx(15.0, rel=1e-9) and np.allclose(gaps, 1.5)
+    t = np.linspace(0, 2 * np.pi, 4000, endpoint=False)
+    box = np.c_[8 * np.cos(t), 5 * np.sin(t), np.zeros_like(t)]  # an ellipse inside both strips' y
+    hole = orifice_area(x, np.vstack([ca, cb]), box, np.zeros(3), axis, 0.25)
+    slot = 4 * quad_area_of_ellipse_strip(8.0, 5.0, 0.75)
+    assert hole == pytest.approx(slot, rel=1e-2)
+    x, ca, cb = _two_leaflets(_strip(-2.0, 8.0, -5, 5, 0.0), _strip(-8.0, 1.0, -5, 5, 1.5))
+    area, _, gaps = leak_gap_area(x, ca, cb, np.zeros(3), axis, across, (-5.0, 5.0), 0.5)
+    assert area == pytest.approx(10.0, rel=1e-9)
+    assert orifice_area(x, np.vstack([ca, cb]), box, np.zeros(3), axis, 0.25) == 0.0
+    x, ca, cb = _two_leaflets(_strip(-2.0, 8.0, -5, 5, 0.0), _strip(-8.0, 1.0, -5, 5, 0.3))
+    assert leak_gap_area(x, ca, cb, np.zeros(3), axis, across, (-5.0, 5.0), 0.5)[0] == 0.0
+
+
+def quad_area_of_ellipse_strip(a: float, b: float, half: float) -> float:
+    """Area of the part of the quarter ellipse x^2/a^2 + y^2/b^2 <= 1 (x, y >= 0) with
+    x <= half: the integral of b sqrt(1 - x^2/a^2) from 0 to half, in closed form."""
+    u = half / a
+    return a * b * 0.5 * (u * np.sqrt(1 - u * u) + np.arcsin(u))
+
+
+@pytest.fixture(scope="module")
+def small_valve():
+    from mpi4py import MPI
+
+    from mvfem.meshes.valve import valve
+
+    return valve(MPI.COMM_WORLD, size=2.0, free_edge_size=1.0)
+
+
+def test_along_leaflet_runs_from_commissure_to_commissure(small_valve):
+    """0 at the posteromedial and 1 at the anterolateral commissure on both leaflets; the
+    annulus points of the leaflet's middle (anterior: +x, posterior: -x) at 1/2, and the
+    annulus points at a third of the leaflet's annulus arc at 1/3."""
+    v = small_valve
+    assert np.allclose(v.along_leaflet(v.commissures, "anterior"), [1.0, 0.0], atol=2e-3)
+    assert np.allclose(v.along_leaflet(v.commissures, "posterior"), [1.0, 0.0], atol=2e-3)
+    loop = v.annulus_curve
+    local = (loop - v.centre) @ v.frame.T
+    for name, sign in (("anterior", 1.0), ("posterior", -1.0)):
+        mid = loop[np.argmin(np.abs(local[:, 1]) + 1e3 * (sign * local[:, 0] < 0))]
+        assert v.along_leaflet(mid, name)[0] == pytest.approx(0.5, abs=0.01)
+        # arc length along the loop from the posteromedial commissure
+        pos = v.along_leaflet(loop, name)
+        inside = (pos > 0) & (pos < 1)
+        seg = np.linalg.norm(np.diff(loop[inside], axis=0), axis=1)
+        order = np.argsort(pos[inside])
+        s = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(loop[inside][order], axis=0),
+                                                          axis=1))])
+        third = np.argmin(np.abs(s - s[-1] / 3))
+        assert pos[inside][order][third] == pytest.approx(1 / 3, abs=0.01)
+        assert len(seg) > 100
+
+
+def test_chordae_edits_select_rupture_and_lengthen(small_valve, monkeypatch):
+    import mvfem
+    from mvfem.model import build_model
+
+    base = mvfem.load_scene(DEMO)
+    m0 = build_model(base)
+    n0 = len(m0.chordae)
+    v = m0.surface
+    post = v.insertion_leaflet == 2
+    pos = v.along_leaflet(v.insertion_points, "posterior")
+    p2 = post & (v.insertion_family == "marginal") & (pos >= 1 / 3) & (pos <= 2 / 3)
+    assert p2.sum() >= 3
+    m1 = build_model(base.with_changes({"chordae.edit": [
+        {"segment": "P2", "family": "marginal", "rupture": True}]}))
+    assert len(m1.chordae) == n0 - p2.sum()
+    m2 = build_model(base.with_changes({"chordae.edit": [
+        {"segment": "P2", "family": "marginal", "length_factor": 1.5}]}))
+    ratio = m2.chordae.rest_length / m0.chordae.rest_length
+    assert np.allclose(ratio[p2], 1.5) and np.allclose(ratio[~p2], 1.0)
+    assert np.allclose(m2.chordae.stiffness * m2.chordae.rest_length,
+                       m0.chordae.stiffness * m0.chordae.rest_length)   # E A unchanged
+    with pytest.raises(mvfem.InputError, match=r"chordae.edit\[0\]: selects no chord"):
+        build_model(base.with_changes({"chordae.edit": [{"leaflet": "septal",
+                                                         "rupture": True}]}))
+
+
+@pytest.mark.parametrize("edit, key", [
+    ({"segment": "P4", "rupture": True}, "chordae.edit[0].segment"),
+    ({"segment": "P2", "leaflet": "anterior", "rupture": True}, "chordae.edit[0].segment"),
+    ({"segment": "A2", "between": [0.1, 0.3], "rupture": True}, "chordae.edit[0].between"),
+    ({"between": [0.6, 0.3], "rupture": True}, "chordae.edit[0].between"),
+    ({"family": "marginal"}, "chordae.edit[0]"),
+    ({"family": "marginal", "rupture": True, "length_factor": 2}, "chordae.edit[0].rupture"),
+    ({"family": "tendon", "rupture": True}, "chordae.edit[0].family"),
+    ({"family": "marginal", "length_factor": -1}, "chordae.edit[0].length_factor"),
+])
+def test_chordae_edit_keys_are_checked(edit, key):
+    import mvfem
+
+    with pytest.raises(mvfem.InputError) as e:
+        mvfem.load_scene(DEMO).with_changes({"chordae.edit": [edit]})
+    assert key in str(e.value) and "demo.toml" in str(e.value)
