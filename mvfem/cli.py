@@ -167,7 +167,8 @@ def _solve_and_report(scene_path, changes, out) -> int:
              f"{fmt(v.get('coaptation_area_mm2'), 'mm2')}; regurgitant orifice "
              f"{fmt(v.get('regurgitant_orifice_area_mm2'), 'mm2')}; tenting "
              f"{fmt(v.get('tenting_height_mm'), 'mm')}; max penetration "
-             f"{fmt(s.get('max_penetration_mm'), 'mm')}")
+             f"{fmt(s.get('max_penetration_mm'), 'mm')} (closest approach "
+             f"{fmt((s.get('contact') or {}).get('min_distance_mm'), 'mm')})")
     written = sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) \
         if out.is_dir() else []
     _say(f"wrote {out}: {', '.join(written)}")

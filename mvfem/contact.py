@@ -197,13 +197,65 @@ class Contact:
 
     # --- reporting ----------------------------------------------------------------------------
     def penetration(self, x: np.ndarray) -> dict:
-        """Largest intrusion into the contact thickness (``thickness - d`` over the pairs) and
-        the number of pairs closer than the thickness, at positions ``x``."""
+        """How far the surfaces at ``x`` pass through each other, and how close they come.
+
+        ``max_penetration_mm``: over every mesh edge that crosses an admissible triangle (both
+        its ends further than ``exclusion`` from the triangle in the reference surface), the
+        depth of its shallower end behind the triangle's plane; 0 when no edge crosses.
+        ``max_intrusion_mm``: the deepest intrusion into the contact thickness, ``thickness -
+        d`` over the node-triangle pairs (the barrier lets pairs come closer than the thickness
+        under load: that is not a penetration). Also ``min_distance_mm``, ``active_pairs`` and
+        ``intersections`` (crossing edge-triangle pairs)."""
         _, _, _, d = self.active_pairs(x)
+        depth, count = self.intersections(x)
+        out = {"max_penetration_mm": depth, "intersections": count, "active_pairs": len(d)}
         if len(d) == 0:
-            return {"max_penetration_mm": 0.0, "active_pairs": 0, "min_distance_mm": None}
-        return {"max_penetration_mm": float(self.thickness - d.min()), "active_pairs": len(d),
+            return {**out, "max_intrusion_mm": 0.0, "min_distance_mm": None}
+        return {**out, "max_intrusion_mm": float(self.thickness - d.min()),
                 "min_distance_mm": float(d.min())}
+
+    def intersections(self, x: np.ndarray) -> tuple[float, int]:
+        """(depth, count) of the mesh edges that cross admissible triangles at ``x``:
+        segment-triangle tests (Moller-Trumbore) on candidates from a KD-tree of centroids;
+        the depth of a crossing is the distance of the edge's shallower end to the plane."""
+        from scipy.spatial import cKDTree
+
+        cells = self.view.cells
+        if len(self.slaves) == 0 or len(cells) == 0:
+            return 0.0, 0
+        e = np.unique(np.sort(np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]],
+                                              cells[:, [2, 0]]]), axis=1), axis=0)
+        mid = 0.5 * (x[e[:, 0]] + x[e[:, 1]])
+        half = 0.5 * np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
+        r_tri = _tri_radius(x, cells)
+        hits = cKDTree(mid).sparse_distance_matrix(
+            cKDTree(x[cells].mean(axis=1)), float(half.max() + r_tri.max()), output_type="ndarray")
+        ei, t = hits["i"].astype(np.int64), hits["j"].astype(np.int64)
+        ok = hits["v"] <= half[ei] + r_tri[t]
+        ei, t = ei[ok], t[ok]
+        a, b = e[ei, 0], e[ei, 1]
+        tri = cells[t]
+        shares = np.any(tri == a[:, None], axis=1) | np.any(tri == b[:, None], axis=1)
+        keep = ~shares
+        keep[keep] = self._admissible(a[keep], t[keep]) & self._admissible(b[keep], t[keep])
+        a, b, tri = a[keep], b[keep], tri[keep]
+        if len(a) == 0:
+            return 0.0, 0
+        p, q = x[a], x[b]
+        v0, v1, v2 = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
+        n = np.cross(v1 - v0, v2 - v0)
+        n /= np.linalg.norm(n, axis=1)[:, None]
+        dp = np.einsum("ij,ij->i", p - v0, n)
+        dq = np.einsum("ij,ij->i", q - v0, n)
+        cross = dp * dq < 0
+        tt = np.where(cross, dp / np.where(cross, dp - dq, 1.0), 0.0)
+        hit = p + tt[:, None] * (q - p)
+        _, _, inside = closest_point_on_triangles(hit, v0, v1, v2)
+        found = cross & inside
+        if not found.any():
+            return 0.0, 0
+        depth = np.minimum(np.abs(dp[found]), np.abs(dq[found]))
+        return float(depth.max()), int(found.sum())
 
     # --- energy -----------------------------------------------------------------------------
     def _near(self, x: np.ndarray, radius: float):

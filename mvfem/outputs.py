@@ -230,7 +230,9 @@ def _point_outputs(model) -> dict:
             out["contact"] = {"thickness_mm": model.contact.thickness,
                               "stiffness_Pa_per_mm": model.contact.stiffness,
                               "active_pairs": pen["active_pairs"],
-                              "min_distance_mm": pen["min_distance_mm"]}
+                              "min_distance_mm": pen["min_distance_mm"],
+                              "max_intrusion_mm": pen["max_intrusion_mm"],
+                              "intersections": pen["intersections"]}
         if getattr(model.surface, "annulus_curve", None) is not None:
             v = valve_metrics(model, x)
             v.pop("_coapting")

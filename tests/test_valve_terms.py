@@ -172,7 +172,29 @@ def test_contact_pushes_sheets_apart_with_the_penalty_pressure():
     assert f[:, 2].sum() == pytest.approx(0.0, abs=1e-9 * np.abs(f).max())
     assert np.allclose(f[:, :2], 0.0, atol=1e-9 * np.abs(f).max())
     pen = c.penetration(x)
-    assert pen["max_penetration_mm"] == pytest.approx(delta - g)
+    assert pen["max_intrusion_mm"] == pytest.approx(delta - g)
+    assert pen["max_penetration_mm"] == 0.0 and pen["intersections"] == 0
+
+
+def test_penetration_is_the_depth_of_an_edge_through_the_other_sheet():
+    """Sheets 0.3 mm apart; one interior node of the upper sheet pushed 0.5 mm down sits 0.2 mm
+    below the lower sheet: each of its edges crosses the lower sheet, the shallower end (the
+    pushed node, 0.2 mm behind the plane; its neighbours are 0.3 mm in front) gives the depth."""
+    from mvfem.contact import Contact
+
+    view, x = _two_sheets(0.3)
+    c = Contact(view, 0.5, 1e5, exclusion=0.2)
+    n = len(x) // 2
+    node = n + 12                      # the middle node of the upper 5 x 5 grid
+    assert np.allclose(x[node, :2], 0.0)
+    y = x.copy()
+    y[node, 2] -= 0.5
+    pen = c.penetration(y)
+    assert pen["max_penetration_mm"] == pytest.approx(0.2, rel=1e-12)
+    valence = len(np.unique(view.cells[np.any(view.cells == node, axis=1)])) - 1
+    assert pen["intersections"] >= valence   # every edge at the node crosses a triangle
+    y[node, 2] = x[node, 2] - 0.25     # 0.05 mm above: close, not through
+    assert c.penetration(y)["max_penetration_mm"] == 0.0
 
 
 def test_barrier_derivatives_and_its_pressure_at_half_the_thickness():
