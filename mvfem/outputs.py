@@ -312,6 +312,10 @@ def write_outputs(result, problem, write: bool = True) -> None:
                 "radial_cauchy_stress_Pa": _percentiles(stress),
             }
     s["regions"] = comm.bcast(regions, root=0)
+    if model.scene["reference"]["file"]:  # closed-state error against a reference surface
+        from mvfem.distance import reference_outputs
+
+        s["reference"] = reference_outputs(model, result.out if write else None)
     timing = s["timing"]
     timing["reference_step_s"] = reference_step_time(model, problem)
     if write:

@@ -179,6 +179,13 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         "probes": (None, []),  # checked in _check_probes
         "xdmf": (_bool, True),
     },
+    # a reference closed surface (any meshio format) to measure the predicted closed state
+    # against (mvfem/distance.py); labels name its cell data 'leaflet' (default: mesh.labels,
+    # else 1 anterior, 2 posterior)
+    "reference": {
+        "file": (_str, None),
+        "labels": (None, None),  # checked in _check_reference
+    },
 }
 _REGION = {
     "label": (_str, None),
@@ -191,7 +198,7 @@ _VALVE_KEYS = ("ap_diameter", "commissural_diameter", "saddle_height", "anterior
                "posterior_height", "papillary_depth", "free_edge_size", "chordae_spacing",
                "annulus", "papillary", "anterior_direction")
 _TOP = ("title", "mesh", "region", "fibres", "boundary", "load", "bending", "chordae", "contact",
-        "solver", "output")
+        "solver", "output", "reference")
 #: chordae families and their defaults: rest length = length_factor x open length (or tree
 #: path length); axial stiffness = modulus x area / rest length. The modulus is a modelling
 #: choice of the order reported for human chordae (README); the area is the data README's.
@@ -374,6 +381,38 @@ def _has_annulus(path: str) -> bool:
         return False
 
 
+def _check_reference(ref: dict, base_dir: Path, mesh_labels: dict | None) -> None:
+    """The reference closed surface: the file exists and reads as a surface whose 'leaflet'
+    values (if any) the labels name (``reference.labels``, else ``mesh.labels``)."""
+    labels = ref["labels"]
+    if labels is not None:
+        if not isinstance(labels, dict) or not labels:
+            raise _Bad("reference.labels", "expected a table such as { 1 = \"anterior\" }")
+        out = {}
+        for k, v in labels.items():
+            try:
+                key = int(k)
+            except (TypeError, ValueError):
+                raise _Bad(f"reference.labels.{k}", "label keys must be integers") from None
+            out[key] = _str(f"reference.labels.{k}", v)
+        ref["labels"] = labels = out
+    if ref["file"] is None:
+        if labels is not None:
+            raise _Bad("reference.labels", "given without reference.file")
+        return
+    from mvfem.distance import read_reference
+
+    p = Path(ref["file"])
+    p = p if p.is_absolute() else base_dir / p
+    if not p.is_file():
+        raise _Bad("reference.file", f"no such file: {p}")
+    try:
+        read_reference(p, labels or mesh_labels)
+    except ValueError as e:
+        raise _Bad("reference.file", str(e)) from None
+    ref["file"] = str(p)
+
+
 def _check_fibres(fib: dict) -> None:
     d = fib["direction"]
     if isinstance(d, str):
@@ -416,6 +455,7 @@ def _validate(raw: dict, base_dir: Path) -> dict:
     _check_valve_files(data["mesh"], base_dir)
     _check_chordae(data["chordae"])
     _check_fibres(data["fibres"])
+    _check_reference(data["reference"], base_dir, data["mesh"]["labels"])
     data["output"]["probes"] = _check_probes(data["output"]["probes"])
     opts = data["solver"]["petsc_options"]
     if opts is not None and not isinstance(opts, dict):
