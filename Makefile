@@ -6,7 +6,7 @@ STAMP := $(VENV)/.mvfem-setup
 # dolfinx, gmsh, meshio and the numerical stack from Debian, so that every compiled piece
 # (PETSc, MPI, numpy ABI) matches; OpenBLAS replaces the slow reference BLAS under MUMPS.
 APT_PACKAGES := python3-dolfinx python3-gmsh python3-meshio python3-venv python3-pip \
-	python3-matplotlib python3-scipy python3-h5py libopenblas0-pthread openmpi-bin
+	python3-matplotlib python3-scipy python3-h5py libopenblas0-pthread openmpi-bin chromium
 MPI_ENV := OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OPENBLAS_NUM_THREADS=1
 MPIRUN := $(MPI_ENV) mpirun --oversubscribe -n 2
 

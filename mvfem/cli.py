@@ -235,6 +235,20 @@ def _cmd_mesh(args) -> int:
     return 0
 
 
+def _cmd_study(args) -> int:
+    from pathlib import Path
+
+    from mvfem.study import load_study, run_study
+
+    study = load_study(args.study)  # everything validated before DIR is touched
+    out = Path(args.out) if args.out else Path("results") / Path(args.study).stem
+    res = run_study(study, out, processes=args.processes, retry_failed=args.retry_failed,
+                    progress=True)  # one line per run and the totals on stderr
+    _say(f"wrote {res['results']}" + (f", {res['report']}" if res["report"] else "")
+         + "".join(f", {p.name}" for p in res["figures"]))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of `mvfem` (exposed for documentation and tests)."""
     p = _Parser(prog="mvfem", description="Mitral valve closure with hyperelastic membranes.")
@@ -274,6 +288,16 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--refinements", type=int, help="octasphere subdivisions")
     g.add_argument("--force", action="store_true", help="replace an existing file")
     g.set_defaults(func=_cmd_mesh)
+
+    st = sub.add_parser("study", help="cases x parameter sets, resumable: results.csv, figures, "
+                        "report.html")
+    st.add_argument("study", help="study file (TOML)")
+    st.add_argument("--out", help="study directory (default: results/<study name>)")
+    st.add_argument("--processes", type=int, help="runs at a time (default: the study's "
+                    "processes, else the cores available)")
+    st.add_argument("--retry-failed", action="store_true",
+                    help="run again the runs recorded as failed")
+    st.set_defaults(func=_cmd_study)
 
     m = sub.add_parser("materials", help="list parameter sets with law, values, thickness, source")
     m.add_argument("--leaflet", choices=("anterior", "posterior"))

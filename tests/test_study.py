@@ -1,0 +1,409 @@
+"""Studies (mvfem/study.py, mvfem/figures.py, mvfem/report.py): cases x parameter sets.
+
+Small clamped disks (136 triangles, about 3 s a run with start-up) stand in for valves. What
+the checks compare against: the per-facet values in each run's fields.h5 (percentiles by numpy
+here), summary.json of each run, the parameter table read with the csv module, the clock
+(runs overlapping in time), file modification times (finished runs not repeated), and a
+browser's rendering of the report.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mvfem.cli import main
+from mvfem.errors import InputError
+from mvfem.study import RESULT_COLUMNS, default_sets, load_study, run_study
+
+ROOT = Path(__file__).resolve().parents[1]
+
+DISK = """title = "clamped disk"
+[mesh]
+generator = "disk"
+radius = 10.0
+size = 2.5
+[[region]]
+law = "mny"
+params = "MNY-mean"
+[load]
+pressure = "16 kPa"
+"""
+
+STUDY = """title = "three disks x two sets"
+sets = ["CP01", "SVK"]
+processes = 2
+biaxial = false
+map_case = "flat-ref"
+[[case]]
+name = "r10"
+scene = "disk.toml"
+[[case]]
+name = "r8"
+scene = "disk.toml"
+set = { mesh.radius = 8.0 }
+[[case]]
+name = "flat-ref"
+scene = "disk.toml"
+set = { "load.pressure" = "12 kPa" }
+reference = "flat.vtu"
+"""
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _write(d: Path, study: str = STUDY, name: str = "study.toml") -> Path:
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "disk.toml").write_text(DISK)
+    (d / name).write_text(study)
+    return d / name
+
+
+def _flat(d: Path) -> None:
+    if not (d / "flat.vtu").exists():
+        assert main(["mesh", "disk", "--radius", "10", "--size", "2.5",
+                     "--out", str(d / "flat.vtu")]) == 0
+
+
+@pytest.fixture(scope="module")
+def disk_study(tmp_path_factory):
+    """The 3 x 2 disk study, run once through the CLI (in process) for several tests."""
+    d = tmp_path_factory.mktemp("study")
+    path = _write(d)
+    _flat(d)
+    out = d / "out"
+    t0 = time.perf_counter()
+    code = main(["study", str(path), "--out", str(out)])
+    return {"dir": d, "out": out, "code": code, "seconds": time.perf_counter() - t0,
+            "study": load_study(path)}
+
+
+def test_study_runs_every_case_and_set(disk_study):
+    out = disk_study["out"]
+    assert disk_study["code"] == 0
+    rows = _rows(out / "results.csv")
+    assert list(rows[0]) == RESULT_COLUMNS
+    assert sorted((r["case"], r["set"]) for r in rows) == sorted(
+        (c, s) for c in ("r10", "r8", "flat-ref") for s in ("CP01", "SVK"))
+    assert all(r["status"] == "converged" and r["converged"] == "true" for r in rows)
+    for r in rows:
+        d = out / r["run_dir"]
+        s = json.loads((d / "summary.json").read_text())
+        assert s["converged"] and s["regions"]["membrane"]["set"] == r["set"]
+        assert r["anterior_set"] == r["set"] and r["posterior_set"] == ""
+        assert float(r["wall_time_s"]) == pytest.approx(s["wall_time_s"], rel=1e-5)
+        assert float(r["pressure_Pa"]) == (12e3 if r["case"] == "flat-ref" else 16e3)
+        # percentiles: numpy on the per-facet values of fields.h5, and summary.json's
+        import h5py
+
+        with h5py.File(d / "fields.h5") as f:
+            strain = f["Function/radial_almansi_strain/0"][:].ravel()
+            stress = f["Function/radial_cauchy_stress_Pa/0"][:].ravel()
+        assert int(r["anterior_cells"]) == len(strain) == s["cells"]
+        for name, p in zip(("p5", "p25", "median", "p75", "p95"), (5, 25, 50, 75, 95)):
+            assert float(r[f"anterior_radial_strain_{name}"]) == pytest.approx(
+                np.percentile(strain, p), rel=1e-5)
+            assert float(r[f"anterior_radial_stress_Pa_{name}"]) == pytest.approx(
+                np.percentile(stress, p), rel=1e-5)
+            assert float(r[f"anterior_radial_stress_Pa_{name}"]) == pytest.approx(
+                s["regions"]["membrane"]["radial_cauchy_stress_Pa"][name], rel=1e-5)
+        if r["case"] == "flat-ref":
+            assert float(r["reference_hausdorff_mm"]) == pytest.approx(
+                s["reference"]["hausdorff_mm"], rel=1e-5)
+            # against the flat open disk, the Hausdorff distance is the dome's height
+            assert float(r["reference_hausdorff_mm"]) == pytest.approx(
+                s["max_displacement_mm"], rel=0.02)
+        else:
+            assert r["reference_mean_abs_error_mm"] == ""
+    # the thinner and stiffer sets give what the table says: CP01 (h 0.68 mm) bulges more
+    # than SVK (E 400 kPa, h 1 mm)
+    disp = {(r["case"], r["set"]): float(r["max_displacement_mm"]) for r in rows}
+    assert disp[("r10", "CP01")] > disp[("r10", "SVK")]
+
+
+def test_runs_ran_in_parallel(disk_study):
+    """processes = 2: some two runs overlapped in time (status.json start/finish times)."""
+    spans = []
+    for st in disk_study["out"].glob("runs/*/*/status.json"):
+        s = json.loads(st.read_text())
+        spans.append((s["started"], s["finished"]))
+    assert len(spans) == 6
+    spans.sort()
+    assert any(b[0] < a[1] for a, b in zip(spans, spans[1:]))
+
+
+def test_figures_and_report_exist(disk_study):
+    out = disk_study["out"]
+    for name in ("box_stress.png", "box_strain.png", "maps_strain.png", "maps_stress.png",
+                 "maps_distance.png"):
+        assert (out / name).stat().st_size > 20_000, name
+    html = (out / "report.html").read_text()
+    assert html.count("<table") >= 4 and "flat-ref" in html and "data:image/png;base64," in html
+    assert "Closed-state error" in html
+    for run_dir in (out / "runs").glob("*/*"):
+        assert f'href="runs/{run_dir.parent.name}/{run_dir.name}/"' in html
+
+
+def _chromium():
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        exe = shutil.which(name)
+        if exe:
+            return exe
+    if os.environ.get("CI"):
+        pytest.fail("chromium is not installed (make setup installs it)")
+    pytest.skip("chromium is not installed (apt-get install chromium; make setup does); "
+                "required when CI is set")
+
+
+def test_report_renders_in_headless_chromium(disk_study, tmp_path):
+    exe = _chromium()
+    report = (disk_study["out"] / "report.html").resolve()
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+             "--disable-background-networking", "--disable-component-update", "--disable-sync",
+             "--disable-dev-shm-usage", f"--user-data-dir={tmp_path / 'profile'}"]
+    shot = tmp_path / "shot.png"
+    r = subprocess.run([exe, *flags, f"--screenshot={shot}", "--window-size=1200,2000",
+                        report.as_uri()], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and shot.is_file(), r.stderr[-2000:]
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(shot)[..., :3]
+    assert img.shape[:2] == (2000, 1200)
+    assert img.std() > 0.05  # not a blank page: text, tables and the figures
+    # the embedded figures were decoded: many distinct colours (text alone is greyscale)
+    sat = img.max(axis=2) - img.min(axis=2)
+    assert (sat > 0.2).mean() > 0.01
+    dom = subprocess.run([exe, *flags, "--dump-dom", report.as_uri()], capture_output=True,
+                         text=True, timeout=120)
+    assert dom.returncode == 0
+    assert "<table" in dom.stdout and "flat-ref" in dom.stdout and "converged" in dom.stdout
+
+
+def test_killed_study_resumes_without_repeating(tmp_path):
+    """Kill -9 the study after its first finished run: its runs die with it (no orphan goes on
+    writing); the same command again makes only the runs that had not finished, and
+    results.csv has every run exactly once."""
+    study = STUDY.replace("processes = 2", "processes = 1").replace('map_case = "flat-ref"',
+                                                                    'map_case = "r10"')
+    study = study[:study.index('[[case]]\nname = "flat-ref"')]
+    path = _write(tmp_path, study)
+    out = tmp_path / "out"
+    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+               OPENBLAS_NUM_THREADS="1")
+    for k in [k for k in env if k.startswith(("OMPI_COMM", "PMIX", "OMPI_MCA_orte"))]:
+        env.pop(k)
+    p = subprocess.Popen([sys.executable, "-m", "mvfem.cli", "study", str(path), "--out",
+                          str(out)], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                         text=True, env=env)
+    lines = []
+    t0 = time.time()
+    while time.time() - t0 < 120:
+        line = p.stderr.readline()
+        lines.append(line)
+        if line.startswith("[1/4]"):
+            break
+    else:
+        p.kill()
+        pytest.fail("no run finished: " + "".join(lines))
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    p.stderr.close()
+    # no run of the study survives its death (they get SIGTERM from the kernel)
+    deadline = time.time() + 15
+    while time.time() < deadline:
+        alive = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout
+        if not alive.strip():
+            break
+        time.sleep(0.2)
+    assert not alive.strip(), alive
+    done = {s.parent: s.stat().st_mtime_ns for s in out.glob("runs/*/*/summary.json")}
+    assert 1 <= len(done) < 4
+    rows = _rows(out / "results.csv")
+    assert len(rows) == 4 and sum(r["status"] == "converged" for r in rows) >= 1
+    study_def = load_study(path)
+    res = run_study(study_def, out, progress=False, report=False)
+    assert res["ran"] == 4 - len(done) and res["skipped"] == len(done)
+    assert res["converged"] == 4
+    for d, mtime in done.items():
+        assert (d / "summary.json").stat().st_mtime_ns == mtime  # not run again
+    rows = _rows(out / "results.csv")
+    assert sorted((r["case"], r["set"]) for r in rows) == sorted(
+        (c, s) for c in ("r10", "r8") for s in ("CP01", "SVK"))
+    assert all(r["status"] == "converged" for r in rows)
+    # a third time: nothing to do
+    assert run_study(study_def, out, progress=False, report=False)["ran"] == 0
+    # a changed case is a different run: only its runs are made again
+    path.write_text(study.replace("mesh.radius = 8.0", "mesh.radius = 7.0"))
+    res = run_study(path, out, progress=False, report=False)
+    assert res["ran"] == 2 and res["converged"] == 4
+    assert all((d / "summary.json").stat().st_mtime_ns == m for d, m in done.items()
+               if d.parent.name == "r10")
+
+
+FAILING = """sets = ["CP01"]
+processes = 2
+biaxial = false
+[[case]]
+name = "good"
+scene = "disk.toml"
+[[case]]
+name = "bad-label"
+scene = "two_regions.toml"
+"""
+
+
+def test_failed_run_is_recorded_not_fatal(tmp_path):
+    """A run that fails (here: region labels the disk mesh does not have, found when the mesh
+    is built, exit code 2 in the run) is a row with its reason; the study goes on, and the
+    failure is not repeated unless asked."""
+    path = _write(tmp_path, FAILING)
+    (tmp_path / "two_regions.toml").write_text(
+        DISK.replace('[[region]]\nlaw = "mny"\nparams = "MNY-mean"\n',
+                     '[[region]]\nlabel = "anterior"\nlaw = "mny"\nparams = "MNY-mean"\n'
+                     '[[region]]\nlabel = "posterior"\nleaflet = "posterior"\nlaw = "mny"\n'
+                     'params = "MNY-mean"\n'))
+    out = tmp_path / "out"
+    res = run_study(path, out, progress=False, report=False)
+    assert (res["converged"], res["failed"]) == (1, 1)
+    rows = {r["case"]: r for r in _rows(out / "results.csv")}
+    bad = rows["bad-label"]
+    assert bad["status"] == "failed" and bad["converged"] == "false" and bad["exit_code"] == "2"
+    assert "is not a label of the mesh" in bad["reason"]
+    assert (bad["anterior_set"], bad["posterior_set"]) == ("CP01", "MNY-mean")
+    assert rows["good"]["status"] == "converged"
+    status = out / "runs" / "bad-label" / "CP01" / "status.json"
+    mtime = status.stat().st_mtime_ns
+    assert run_study(path, out, progress=False, report=False)["ran"] == 0
+    assert status.stat().st_mtime_ns == mtime
+    res = run_study(path, out, progress=False, retry_failed=True, report=False)
+    assert res["ran"] == 1 and status.stat().st_mtime_ns != mtime
+
+
+def test_timeout_is_a_failure(tmp_path):
+    path = _write(tmp_path, 'sets = ["SVK"]\ntimeout = 0.3\nbiaxial = false\n'
+                  '[[case]]\nscene = "disk.toml"\n')
+    out = tmp_path / "out"
+    res = run_study(path, out, progress=False, report=False)
+    assert res["failed"] == 1
+    (row,) = _rows(out / "results.csv")
+    assert row["case"] == "disk" and "timed out after 0.3 s" in row["reason"]
+
+
+def test_sets_per_leaflet_on_the_demo_valve():
+    """A study set is a name: the anterior region gets the anterior set, the posterior region
+    the posterior set of that name, or the posterior MNY-mean where there is none; law,
+    parameters and thickness as in materials.csv (read here with the csv module)."""
+    with open(ROOT / "mvfem" / "data" / "materials.csv", newline="") as f:
+        table = {(r["leaflet"], r["set"]): r for r in csv.DictReader(f)}
+    assert default_sets() == [s for (leaf, s) in table if leaf == "anterior"]
+    assert len(default_sets()) == 11
+    study = load_study({"case": [{"scene": "demo", "set": {"mesh.size": 3.0}}]})
+    assert [r.set for r in study.runs] == default_sets()
+    from mvfem.scene import load_scene
+
+    for run in study.runs:
+        post = run.set if ("posterior", run.set) in table else "MNY-mean"
+        assert (run.anterior_set, run.posterior_set) == (run.set, post)
+        assert [r["leaflet"] for r in run.regions] == ["anterior", "posterior"]
+        scene = load_scene(run.scene).with_changes(run.changes)
+        for region, leaflet, name in zip(scene["region"], ("anterior", "posterior"),
+                                         (run.set, post)):
+            row = table[(leaflet, name)]
+            assert region["law"] == row["law"] and region["set"] == name
+            assert region["thickness"] == pytest.approx(float(row["thickness_mm"]))
+            key = {"mny": "c0", "holzapfel": "c0", "svk": "E"}[row["law"]]
+            assert region["params"][key] == pytest.approx(float(row[f"{key}_Pa"]))
+        assert scene["mesh"]["size"] == 3.0
+
+
+@pytest.mark.parametrize("text,words", [
+    ('color = 1\n[[case]]\nscene = "disk.toml"\n', ["color", "unknown key"]),
+    ('sets = ["CP09"]\n[[case]]\nscene = "disk.toml"\n', ["sets[0]", "CP09", "unknown"]),
+    ('sets = ["CP01", "cp01"]\n[[case]]\nscene = "disk.toml"\n', ["sets", "twice"]),
+    ('sets = []\n[[case]]\nscene = "disk.toml"\n', ["sets", "expected a list"]),
+    ('processes = 0\n[[case]]\nscene = "disk.toml"\n', ["processes", "positive integer"]),
+    ('timeout = -1\n[[case]]\nscene = "disk.toml"\n', ["timeout", "positive number"]),
+    ('biaxial = "yes"\n[[case]]\nscene = "disk.toml"\n', ["biaxial", "true or false"]),
+    ('sets = ["SVK"]\n', ["case", "at least one"]),
+    ('[[case]]\nscene = "nowhere.toml"\n', ["case[0].scene", "no such scene file"]),
+    ('[[case]]\nname = "a b"\nscene = "disk.toml"\n', ["case[0].name", "directory"]),
+    ('[[case]]\nscene = "disk.toml"\n[[case]]\nscene = "disk.toml"\n', ["case[1].name", "twice"]),
+    ('[[case]]\nscene = "disk.toml"\nsize = 2\n', ["case[0].size", "unknown key"]),
+    ('[[case]]\nscene = "disk.toml"\nset = { mesh.radius = -1.0 }\n',
+     ["case[0]", "set CP01", "mesh.radius", "positive"]),
+    ('[[case]]\nscene = "disk.toml"\nset = { mesh.colour = 1 }\n', ["case[0]", "mesh.colour"]),
+    ('[[case]]\nscene = "disk.toml"\nreference = "none.vtu"\n',
+     ["case[0].reference", "no such file"]),
+    ('map_case = "x"\n[[case]]\nscene = "disk.toml"\n', ["map_case", "not a case"]),
+    ('[[case]\nscene = "disk.toml"\n', ["not valid TOML"]),
+])
+def test_bad_study_is_one_line_exit_2(tmp_path, capsys, text, words):
+    path = _write(tmp_path, text)
+    out = tmp_path / "never"
+    assert main(["study", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert str(path) in err
+    for w in words:
+        assert w in err, err
+    assert not out.exists()
+
+
+def test_study_refuses_a_users_directory_and_a_second_study(tmp_path, capsys):
+    path = _write(tmp_path, 'sets = ["SVK"]\n[[case]]\nscene = "disk.toml"\n')
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    assert main(["study", str(path), "--out", str(mine)]) == 2
+    assert "not written by mvfem" in capsys.readouterr().err
+    assert os.listdir(mine) == ["notes.txt"] and (mine / "notes.txt").read_text() == "keep me"
+    from mvfem.outputs import prepare_out
+    from mvfem.study import _Lock
+
+    out = prepare_out(tmp_path / "busy")
+    lock = _Lock(out / ".study.lock")
+    try:
+        with pytest.raises(InputError, match="another mvfem study is running"):
+            run_study(path, out, progress=False)
+    finally:
+        lock.release()
+
+
+@pytest.mark.slow
+def test_paper_figures_script_quick(tmp_path):
+    """scripts/paper_figures.py --quick under mpirun -n 2: two generated valves (the default
+    annulus and the kaiser_normal1 patient annulus) x two sets at mesh size 5 mm, all figures.
+    40-65 s on two shared cores (so under -m slow)."""
+    from test_scripts import _env, _mpirun
+
+    out = tmp_path / "paper"
+    r = subprocess.run([*_mpirun(2), sys.executable, str(ROOT / "scripts" / "paper_figures.py"),
+                        "--out", str(out), "--quick"], capture_output=True, text=True,
+                       env=_env(), timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rows = _rows(out / "results.csv")
+    assert sorted((r["case"], r["set"]) for r in rows) == sorted(
+        (c, s) for c in ("default", "patient") for s in ("MNY-mean", "SVK"))
+    assert all(r["status"] in ("converged", "stopped") for r in rows), rows
+    for row in rows:  # valves: both leaflets, with their own sets
+        assert int(row["anterior_cells"]) > 0 and int(row["posterior_cells"]) > 0
+        assert row["posterior_set"] == row["set"]
+        assert row["coaptation_length_mm"] != ""
+    for name in ("box_stress.png", "box_strain.png", "maps_strain.png", "maps_stress.png",
+                 "biaxial/biaxial_anterior.png", "biaxial/biaxial_posterior.png", "report.html"):
+        assert (out / name).stat().st_size > 20_000, name
+    # the runs went two at a time although mpirun bound each rank to one core
+    assert "2 at a time" in r.stderr
