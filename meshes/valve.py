@@ -165,7 +165,7 @@ def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0
           papillary_position: Sequence[float] = (0.25, 0.75),
           size: float = 1.0, free_edge_size: float = 0.5, refine_distance: float = 5.0,
           chordae_spacing: float = 2.5, coaptation_offset: float = 0.3,
-          closed_depth: float = 12.0,
+          closed_depth: float = 13.0,
           strut_points: Sequence[Sequence[float]] = ((0.3, 0.6), (0.7, 0.6)),
           basal_points: Sequence[Sequence[float]] = ((0.25, 0.3), (0.5, 0.3), (0.75, 0.3)),
           annulus: np.ndarray | None = None, papillary: np.ndarray | None = None,
@@ -208,9 +208,11 @@ def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0
             commissures' chord to the posterior annulus.
         closed_depth: designed closed valve: depth of the free edges at the middle below the
             commissures' chord, mm. The chordae are just taut when their insertions sit
-            there (rest length = distance from the tip). The default 12 mm closes the
-            default valve with a tenting height of 5.5 mm and a coaptation length of 6 mm
-            (healthy: 5 +- 0.7 and 3-8 mm, data README; 9 mm gave 1.9 and 7.8 mm).
+            there (rest length = distance from the tip). With 13 mm the built-in valve
+            (``mvfem demo``: these defaults with a 23 mm anterior leaflet) closes with a
+            tenting height of 5.2 mm and a coaptation length of 7.8 mm (healthy: 5 +- 0.7
+            and 3-8 mm, data README); measured at 12, 13.5 and 15 mm on the 24 mm leaflet:
+            tenting 3.9, 5.8, 6.4 mm, coaptation 8.4, 8.0, 7.6 mm (README).
         strut_points: anterior strut insertions as ``(tau, r)``: fraction across the leaflet
             (from the posteromedial commissure) and fraction of the local height from the
             annulus.

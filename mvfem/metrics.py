@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mvfem.contact import segment_distance
 from mvfem.nodal import lumped_area
 
 __all__ = ["valve_metrics", "coapting_nodes", "orifice_area", "leak_gap_area",
@@ -152,29 +153,6 @@ def orifice_area(x, cells, annulus_loop, centre, axis, grow: float) -> float:
         yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
         covered = ndimage.binary_dilation(covered, structure=(xx**2 + yy**2) <= r * r)
     return float(np.sum(inside & ~covered) * PIXEL**2)
-
-
-def segment_distance(p0, p1, q0, q1) -> np.ndarray:
-    """Distances between segments ``[p0, p1]`` and ``[q0, q1]`` (row-wise, (m, 3) each): the
-    clamped closest points of the two lines (Ericson, Real-Time Collision Detection 5.1.9),
-    degenerate (point) segments included."""
-    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
-    a = np.einsum("ij,ij->i", d1, d1)
-    e = np.einsum("ij,ij->i", d2, d2)
-    b = np.einsum("ij,ij->i", d1, d2)
-    c = np.einsum("ij,ij->i", d1, r)
-    f = np.einsum("ij,ij->i", d2, r)
-    eps = 1e-24
-    pa, pe = a > eps, e > eps
-    safe = lambda v: np.where(v != 0, v, 1.0)  # noqa: E731
-    den = a * e - b * b
-    s = np.where(pa & pe & (den > 1e-12 * a * e), (b * f - c * e) / safe(den), 0.0)
-    s = np.where(pa & ~pe, -c / safe(a), s)
-    s = np.clip(s, 0.0, 1.0)
-    t = np.where(pe, (b * s + f) / safe(e), 0.0)
-    t_c = np.clip(t, 0.0, 1.0)
-    s = np.where(pa & (t != t_c), np.clip((t_c * b - c) / safe(a), 0.0, 1.0), s)
-    return np.linalg.norm(p0 + s[:, None] * d1 - (q0 + t_c[:, None] * d2), axis=1)
 
 
 def leak_gap_area(x, cells_a, cells_b, origin, axis, along, span, thickness) -> tuple:

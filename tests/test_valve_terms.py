@@ -159,9 +159,17 @@ def test_contact_pushes_sheets_apart_with_the_penalty_pressure():
     c = Contact(view, delta, k, exclusion=0.2)
     blk = c(x)
     assert np.allclose(c.active_pairs(x)[3], 0.3)
+    m = len(c.active_pairs(x)[0])   # node-triangle blocks first, then the edge-edge ones
     f = np.zeros_like(x)
-    for e, nd in enumerate(blk.nodes):
+    for e, nd in enumerate(blk.nodes[:m]):
         f[nd] += blk.force[e]
+    # edge pairs (edges that cross seen from above, 0.3 mm apart; parallel ones are mollified
+    # away): they push the sheets apart too, and balance
+    fe = np.zeros_like(x)
+    for e, nd in enumerate(blk.nodes[m:]):
+        fe[nd] += blk.force[m + e]
+    assert len(blk.nodes) > m and np.all(fe[: len(x) // 2, 2] >= 0)
+    assert fe[:, 2].sum() == pytest.approx(0.0, abs=1e-9 * np.abs(fe).max())
     n = len(x) // 2
     valence = np.bincount(view.cells.ravel(), minlength=len(x))
     # residual = energy gradient: the lower sheet is pushed down (+z gradient), upper up;
@@ -589,3 +597,79 @@ def test_chordae_edit_keys_are_checked(edit, key):
     with pytest.raises(mvfem.InputError) as e:
         mvfem.load_scene(DEMO).with_changes({"chordae.edit": [edit]})
     assert key in str(e.value) and "demo.toml" in str(e.value)
+
+
+def test_edge_edge_energy_derivatives_and_mollifier():
+    """Random edge pairs within the thickness: the gradient is the derivative of the energy
+    and the Hessian that of the gradient (central differences); the mollifier is 0 for
+    parallel edges, 1 once |ea x eb|^2 exceeds eps_x, and C1 in between."""
+    from mvfem.contact import edge_edge_energy, edge_edge_hessian
+
+    rng = np.random.default_rng(7)
+    m = 40
+    a0 = rng.normal(size=(m, 3))
+    a1 = a0 + rng.normal(size=(m, 3))
+    mid = 0.5 * (a0 + a1)
+    dirn = rng.normal(size=(m, 3))
+    off = rng.normal(size=(m, 3))
+    off = 0.1 * off / np.linalg.norm(off, axis=1)[:, None] + 0.15 * np.cross(a1 - a0, dirn) \
+        / np.linalg.norm(np.cross(a1 - a0, dirn), axis=1)[:, None]
+    b0, b1 = mid + off - 0.5 * dirn, mid + off + 0.5 * dirn
+    y = np.concatenate([a0, a1, b0, b1], axis=1)
+    w, eps = np.full(m, 3.0), np.full(m, 1e-2)
+    E, g, d = edge_edge_energy(y, w, eps, 0.5)
+    assert np.all(d < 0.5) and np.all(E > 0)
+    h = 1e-6
+    H = edge_edge_hessian(y, w, eps, 0.5)
+    for j in range(12):
+        e = np.zeros(12)
+        e[j] = h
+        Ep, gp, _ = edge_edge_energy(y + e, w, eps, 0.5)
+        Em, gm, _ = edge_edge_energy(y - e, w, eps, 0.5)
+        assert np.allclose((Ep - Em) / (2 * h), g[:, j], rtol=1e-5, atol=1e-7 * np.abs(g).max())
+        assert np.allclose((gp - gm) / (2 * h), H[:, :, j], rtol=1e-3,
+                           atol=1e-5 * np.abs(H).max())
+    # parallel edges: no energy, no force
+    par = np.concatenate([a0, a1, a0 + [0, 0, 0.2], a1 + [0, 0, 0.2]], axis=1)
+    E0, g0, _ = edge_edge_energy(par, w, eps, 0.5)
+    assert np.allclose(E0, 0.0) and np.allclose(g0, 0.0)
+
+
+def test_step_limit_stops_a_free_edge_sliding_through_another():
+    """Two sheets in perpendicular vertical planes, their free (lower/upper) edges crossing
+    at right angles seen from above: sheet B's top edge runs along y at z = -0.4 below sheet
+    A's bottom edge along x at z = 0; moving B up by 1 mm would cut the edges through each
+    other at t = 0.4, with no node ever passing through a face (the nodes pass beside the
+    other sheet): the edge-edge check stops the update at 0.8 x 0.4."""
+    from types import SimpleNamespace
+
+    from mpi4py import MPI
+
+    from mvfem.contact import Contact
+
+    g = np.linspace(-2, 2, 5)
+    h = np.linspace(0, 2, 3)
+    A = np.array([[xx, 0.0, zz] for zz in h for xx in g])             # plane y = 0, z in [0, 2]
+    B = np.array([[0.0, yy, -zz - 0.4] for zz in h for yy in g])      # plane x = 0, below
+    pts = np.vstack([A, B])
+
+    def grid_cells(off):
+        c = []
+        for r in range(2):
+            for k in range(4):
+                i = off + r * 5 + k
+                c += [(i, i + 1, i + 6), (i, i + 6, i + 5)]
+        return c
+
+    cells = np.array(grid_cells(0) + grid_cells(len(A)))
+    tag = np.r_[np.ones(16, int), 2 * np.ones(16, int)]
+    a = 0.5 * np.linalg.norm(np.cross(pts[cells[:, 1]] - pts[cells[:, 0]],
+                                      pts[cells[:, 2]] - pts[cells[:, 0]]), axis=1)
+    view = SimpleNamespace(comm=MPI.COMM_SELF, X=pts, cells=cells, cell_tag=tag,
+                           free=np.ones((len(pts), 3), dtype=bool),
+                           area=np.bincount(cells.ravel(), np.repeat(a / 3, 3), len(pts)))
+    c = Contact(view, 0.1, 1e5, exclusion=0.2)
+    dx = np.zeros_like(pts)
+    dx[len(A):, 2] = 1.0
+    assert c._vertex_face_first(pts, dx) == np.inf     # no node meets a face
+    assert c.step_limit(pts, dx) == pytest.approx(0.8 * 0.4, rel=1e-9)
