@@ -394,13 +394,15 @@ def run_state(spec: RunSpec, out: Path) -> str:
 
 def _child_env() -> dict:
     """The environment of a run: no MPI job of ours (a study started under mpirun must not hand
-    its MPI environment to the runs), one BLAS thread per process."""
+    its MPI environment to the runs), an isolated MPI singleton (no orted daemon and session
+    directory per run: many of those at once on one machine), one BLAS thread per process."""
     env = {k: v for k, v in os.environ.items()
            if not (k.startswith(("OMPI_", "PMIX_", "PMI_", "ORTE_", "HYDRA_", "HYDI_",
                                  "MPI_LOCALRANKID"))
                    and not k.startswith("OMPI_ALLOW_RUN_AS_ROOT"))}
     env.setdefault("OPENBLAS_NUM_THREADS", "1")
     env.setdefault("OMP_NUM_THREADS", "1")
+    env["OMPI_MCA_ess_singleton_isolated"] = "1"
     return env
 
 
@@ -426,6 +428,7 @@ def _die_with_parent(parent: int, cpus: set | None):
 
 
 def _last_line(path: Path) -> str:
+    """The last line a run wrote to its log (not the command line the study put first)."""
     try:
         with open(path, "rb") as f:
             f.seek(0, os.SEEK_END)
@@ -433,7 +436,7 @@ def _last_line(path: Path) -> str:
             lines = [ln.strip() for ln in f.read().decode(errors="replace").splitlines()]
     except OSError:
         return ""
-    lines = [ln for ln in lines if ln]
+    lines = [ln for ln in lines if ln and not ln.startswith("$ ")]
     return lines[-1] if lines else ""
 
 
@@ -640,7 +643,7 @@ def _finish(r: _Running, out: Path, rc: int | None, reason: str | None = None) -
                                                                         else "")
                 except ValueError:
                     pass
-            reason = reason or f"exit code {rc}"
+            reason = reason or f"exit code {rc} with no output"
         (d / "summary.json").unlink(missing_ok=True)
     rec = {"status": status, "exit_code": rc, "reason": reason, "elapsed_s": elapsed,
            "started": r.started_wall, "finished": time.time(), "pid": r.proc.pid}
