@@ -148,9 +148,13 @@ def write_html(study, out: Path, rows: list[dict], figs: dict, biaxial: list[Pat
               f"{time.strftime('%Y-%m-%d %H:%M')} by mvfem; one row per run in "
               f"<a href=\"results.csv\">results.csv</a>.</p>")]
     parts.append("<h2>Cases</h2>")
+    from mvfem.study import demo_scene_path
+
     body = []
     for c in study.cases:
-        body.append([html.escape(c.name), html.escape(os.path.relpath(c.scene, out)),
+        scene = ("demo (the built-in valve)" if Path(c.scene) == demo_scene_path().resolve()
+                 else os.path.relpath(c.scene, out))
+        body.append([html.escape(c.name), html.escape(scene),
                      html.escape(", ".join(f"{k} = {v}" for k, v in c.changes.items())),
                      html.escape(os.path.relpath(c.reference, out)) if c.reference else ""])
     parts.append(_table(["case", "scene", "changes", "reference surface"], body))

@@ -118,6 +118,8 @@ class RunSpec:
     Attributes:
         regions: per ``[[region]]`` of the scene, in order: label, leaflet and the set used
             (the ``region`` cell values of fields.h5 index this list).
+        scene_sha256: of the scene file's text, so that an edited scene is a different run
+            (code changes are not detected).
     """
 
     case: str
@@ -127,6 +129,7 @@ class RunSpec:
     scene: str
     changes: dict
     regions: list
+    scene_sha256: str = ""
 
     @property
     def key(self) -> str:
@@ -339,6 +342,9 @@ def load_study(study: str | Path | dict, base_dir: str | Path | None = None) -> 
             base_scene = load_scene(scene_path)
         except InputError as e:
             raise bad(f"{where}.scene", str(e)) from None
+        import hashlib
+
+        digest = hashlib.sha256(scene_path.read_bytes()).hexdigest()
         for s in canonical:
             set_changes, regions, ant, post = _set_changes(base_scene, s)
             all_changes = {**set_changes, **changes, "output.xdmf": True}
@@ -349,7 +355,8 @@ def load_study(study: str | Path | dict, base_dir: str | Path | None = None) -> 
             except InputError as e:
                 raise bad(where, f"({name}, set {s}): {e}") from None
             runs.append(RunSpec(case=name, set=s, anterior_set=ant, posterior_set=post,
-                                scene=str(scene_path), changes=all_changes, regions=regions))
+                                scene=str(scene_path), changes=all_changes, regions=regions,
+                                scene_sha256=digest))
         cases.append(case)
     map_case = raw.get("map_case", cases[0].name)
     if map_case not in [c.name for c in cases]:

@@ -251,6 +251,11 @@ def test_killed_study_resumes_without_repeating(tmp_path):
     assert res["ran"] == 2 and res["converged"] == 4
     assert all((d / "summary.json").stat().st_mtime_ns == m for d, m in done.items()
                if d.parent.name == "r10")
+    # an edited scene file too: every run of it again
+    (tmp_path / "disk.toml").write_text(DISK.replace("16 kPa", "15 kPa"))
+    res = run_study(path, out, progress=False, report=False)
+    assert res["ran"] == 4 and res["converged"] == 4
+    assert {r["pressure_Pa"] for r in _rows(out / "results.csv")} == {"15000"}
 
 
 FAILING = """sets = ["CP01"]
