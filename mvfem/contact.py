@@ -85,7 +85,7 @@ def closest_point_on_triangles(p, a, b, c):
     return best, best_bary, inside
 
 
-def distance_gradient(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _distance_gradient_np(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distance from node to triangle and its gradient (m, 12) for stacked ``y`` = (node,
     vertex a, b, c) coordinates (m, 12): by the envelope theorem, ``d d/d x_s = nu`` and
     ``d d / d x_i = -xi_i nu`` with ``nu`` the unit vector from the closest point."""
@@ -98,18 +98,18 @@ def distance_gradient(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return d, (coef[:, :, None] * nu[:, None, :]).reshape(m, 12)
 
 
-def distance_hessian(y: np.ndarray, rel: float = 1e-4) -> np.ndarray:
+def _distance_hessian_np(y: np.ndarray, rel: float = 1e-4) -> np.ndarray:
     """(m, 12, 12) Hessian of the node-triangle distance: central differences of its exact
     gradient (:func:`distance_gradient`) with steps ``rel`` x the distance, symmetrised."""
     m = len(y)
-    d, _ = distance_gradient(y)
+    d, _ = _distance_gradient_np(y)
     h = np.maximum(rel * d, 1e-12)
     H = np.empty((m, 12, 12))
     for j in range(12):
         e = np.zeros(12)
         e[j] = 1.0
-        _, gp = distance_gradient(y + h[:, None] * e)
-        _, gm = distance_gradient(y - h[:, None] * e)
+        _, gp = _distance_gradient_np(y + h[:, None] * e)
+        _, gm = _distance_gradient_np(y - h[:, None] * e)
         H[:, :, j] = (gp - gm) / (2 * h[:, None])
     return 0.5 * (H + H.transpose(0, 2, 1))
 
@@ -171,7 +171,7 @@ def segment_distance(p0, p1, q0, q1) -> np.ndarray:
     return segment_closest(p0, p1, q0, q1)[0]
 
 
-def edge_edge_energy(y: np.ndarray, weight, eps_x, delta: float) -> tuple[np.ndarray, ...]:
+def _edge_edge_energy_np(y: np.ndarray, weight, eps_x, delta: float) -> tuple[np.ndarray, ...]:
     r"""Mollified barrier of edge pairs and its gradient, for stacked ``y`` = (a0, a1, b0, b1)
     coordinates (m, 12):
 
@@ -206,20 +206,62 @@ def edge_edge_energy(y: np.ndarray, weight, eps_x, delta: float) -> tuple[np.nda
     return E, grad.reshape(m, 12), d
 
 
-def edge_edge_hessian(y, weight, eps_x, delta: float, rel: float = 1e-4) -> np.ndarray:
+def _edge_edge_hessian_np(y, weight, eps_x, delta: float, rel: float = 1e-4) -> np.ndarray:
     """(m, 12, 12) Hessian of :func:`edge_edge_energy`: central differences of its exact
     gradient with steps ``rel`` x the distance, symmetrised."""
     m = len(y)
-    d = edge_edge_energy(y, weight, eps_x, delta)[2]
+    d = _edge_edge_energy_np(y, weight, eps_x, delta)[2]
     h = np.maximum(rel * d, 1e-12)
     H = np.empty((m, 12, 12))
     for j in range(12):
         e = np.zeros(12)
         e[j] = 1.0
-        gp = edge_edge_energy(y + h[:, None] * e, weight, eps_x, delta)[1]
-        gm = edge_edge_energy(y - h[:, None] * e, weight, eps_x, delta)[1]
+        gp = _edge_edge_energy_np(y + h[:, None] * e, weight, eps_x, delta)[1]
+        gm = _edge_edge_energy_np(y - h[:, None] * e, weight, eps_x, delta)[1]
         H[:, :, j] = (gp - gm) / (2 * h[:, None])
     return 0.5 * (H + H.transpose(0, 2, 1))
+
+
+def distance_gradient(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from node to triangle and its gradient (m, 12) for stacked ``y`` = (node,
+    vertex a, b, c) coordinates (m, 12): by the envelope theorem, ``d d/d x_s = nu`` and
+    ``d d / d x_i = -xi_i nu`` with ``nu`` the unit vector from the closest point. Compiled
+    (:mod:`mvfem.kernels`) where a C compiler is available, else numpy."""
+    from mvfem import kernels
+
+    if kernels.load() is None or len(y) == 0:
+        return _distance_gradient_np(y)
+    return kernels.point_triangle_gradient(y)
+
+
+def distance_hessian(y: np.ndarray, rel: float = 1e-4) -> np.ndarray:
+    """(m, 12, 12) Hessian of the node-triangle distance: central differences of its exact
+    gradient with steps ``rel`` x the distance, symmetrised (compiled or numpy)."""
+    from mvfem import kernels
+
+    if kernels.load() is None or len(y) == 0:
+        return _distance_hessian_np(y, rel)
+    return kernels.point_triangle_hessian(y, rel)
+
+
+def edge_edge_energy(y: np.ndarray, weight, eps_x, delta: float) -> tuple[np.ndarray, ...]:
+    """(E, dE/dy (m, 12), d) of the mollified edge-edge barrier (see
+    :func:`_edge_edge_energy_np` for the formula; compiled or numpy)."""
+    from mvfem import kernels
+
+    if kernels.load() is None or len(y) == 0:
+        return _edge_edge_energy_np(y, weight, eps_x, delta)
+    return kernels.edge_edge_energy(y, weight, eps_x, delta)
+
+
+def edge_edge_hessian(y, weight, eps_x, delta: float, rel: float = 1e-4) -> np.ndarray:
+    """(m, 12, 12) Hessian of :func:`edge_edge_energy` by central differences of its exact
+    gradient, symmetrised (compiled or numpy)."""
+    from mvfem import kernels
+
+    if kernels.load() is None or len(y) == 0:
+        return _edge_edge_hessian_np(y, weight, eps_x, delta, rel)
+    return kernels.edge_edge_hessian(y, weight, eps_x, delta, rel)
 
 
 def _swept_pairs(P, mP, rP, Q, mQ, rQ, classes: int = 6):

@@ -673,3 +673,31 @@ def test_step_limit_stops_a_free_edge_sliding_through_another():
     dx[len(A):, 2] = 1.0
     assert c._vertex_face_first(pts, dx) == np.inf     # no node meets a face
     assert c.step_limit(pts, dx) == pytest.approx(0.8 * 0.4, rel=1e-9)
+
+
+def test_compiled_contact_kernels_match_numpy():
+    """The C kernels (mvfem.kernels) and the numpy formulas give the same distances,
+    gradients and curvatures, in the face, edge and vertex regions and for edge pairs."""
+    from mvfem import contact, kernels
+
+    if kernels.load() is None:
+        pytest.fail("the contact kernels did not compile (a C compiler is part of make setup)")
+    rng = np.random.default_rng(11)
+    m = 300
+    tri = rng.normal(size=(m, 3, 3))
+    p = tri.mean(axis=1) + rng.normal(scale=1.5, size=(m, 3))   # all three regions
+    y = np.concatenate([p[:, None], tri], axis=1).reshape(m, 12)
+    d0, g0 = contact._distance_gradient_np(y)
+    d1, g1 = kernels.point_triangle_gradient(y)
+    assert np.allclose(d0, d1, rtol=1e-12, atol=1e-14) and np.allclose(g0, g1, atol=1e-12)
+    H0, H1 = contact._distance_hessian_np(y), kernels.point_triangle_hessian(y)
+    assert np.allclose(H0, H1, rtol=1e-6, atol=1e-6 * np.abs(H0).max())
+    ye = rng.normal(size=(m, 12)) * 0.3
+    w, eps = rng.uniform(1, 2, m), rng.uniform(1e-3, 1e-1, m)
+    E0, G0, D0 = contact._edge_edge_energy_np(ye, w, eps, 0.5)
+    E1, G1, D1 = kernels.edge_edge_energy(ye, w, eps, 0.5)
+    assert (D0 < 0.5).sum() > 30
+    assert np.allclose(D0, D1, atol=1e-13) and np.allclose(E0, E1, rtol=1e-10, atol=1e-14)
+    assert np.allclose(G0, G1, rtol=1e-9, atol=1e-10 * np.abs(G0).max())
+    K0, K1 = contact._edge_edge_hessian_np(ye, w, eps, 0.5), kernels.edge_edge_hessian(ye, w, eps, 0.5)
+    assert np.allclose(K0, K1, rtol=1e-5, atol=1e-6 * np.abs(K0).max())
