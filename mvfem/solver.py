@@ -398,6 +398,11 @@ class PseudoTransient:
     restarts: int = 5
     restart_weight: float = 1e3
     on_step: Callable[[PseudoTimeRecord, "PseudoTransient"], None] | None = None
+    #: prescribed motion: ``ramp(f)`` sets the Dirichlet values to the fraction ``f`` of their
+    #: targets (an annulus moved to a ring, say); it is called with ``n / ramp_steps`` before
+    #: each of the first ``ramp_steps`` steps, so the motion is spread over them
+    ramp: Callable[[float], None] | None = None
+    ramp_steps: int = 0
     history: list[PseudoTimeRecord] = field(default_factory=list)
     stop_reason: str = ""
     solve_s: float = 0.0
@@ -419,7 +424,8 @@ class PseudoTransient:
                 self.stop_reason = "the residual of the initial state is not finite"
                 return SolveInfo(False, 0, "DIVERGED_FNORM_NAN", r)
             k, in_a_row, its, monotone, restarts = self.k0, 0, 0, False, 0
-            while r > self.atol:
+            ramped = self.ramp is None
+            while r > self.atol or not ramped:
                 if its >= self.max_steps:
                     self.stop_reason = (f"residual {r:.3g} above the tolerance {self.atol:.3g} "
                                         f"after {its} pseudo-time steps (solver.max_steps)")
@@ -435,6 +441,10 @@ class PseudoTransient:
                                         f"(dt = {1 / k:.3g}): no admissible step")
                     break
                 its += 1
+                if self.ramp is not None and its <= max(self.ramp_steps, 1) and not ramped:
+                    self.ramp(min(its / max(self.ramp_steps, 1), 1.0))
+                    ramped = its >= max(self.ramp_steps, 1)
+                    r = pb.evaluate_residual(x)  # the Dirichlet rows now hold x - g
                 pb.b.copy(rhs)  # F(x), still in b from the last evaluation at x
                 pb.evaluate_tangent(x, k)
                 t0 = time.perf_counter()
