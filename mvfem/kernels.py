@@ -99,15 +99,63 @@ void pt_grad(long m, const double *y, double *d, double *g) {
   for (long i = 0; i < m; i++) d[i] = pt_one(y + 12 * i, g + 12 * i);
 }
 
+/* Which feature of the triangle is closest to the node: 0 the face, 1 + i the edge from
+   vertex i to i + 1, 4 + i vertex i (the same choice as closest_tri). */
+static int pt_type(const double *y) {
+  const double *p = y, *a = y + 3, *b = y + 6, *c = y + 9;
+  double xi[3];
+  closest_tri(p, a, b, c, xi);
+  int nz = (xi[0] > 0) + (xi[1] > 0) + (xi[2] > 0);
+  if (nz == 3) return 0;
+  if (nz == 1) return 4 + (xi[0] > 0 ? 0 : (xi[1] > 0 ? 1 : 2));
+  if (xi[2] == 0) return 1;          /* edge 0-1 */
+  if (xi[0] == 0) return 2;          /* edge 1-2 */
+  return 3;                          /* edge 2-0 */
+}
+
+/* distance and gradient to the feature `type` extended smoothly (plane, line, point): the
+   distance's curvature is that of the feature the node is closest to, with no kink where
+   the closest feature changes (central differences across a kink were wrong by O(1/h)) */
+static double pt_fixed(const double *y, int type, double *g) {
+  const double *p = y, *V[3] = {y + 3, y + 6, y + 9};
+  double xi[3] = {0, 0, 0};
+  if (type == 0) {
+    double ab[3], ac[3], ap[3];
+    sub3(V[1], V[0], ab); sub3(V[2], V[0], ac); sub3(p, V[0], ap);
+    double d00 = dot3(ab, ab), d01 = dot3(ab, ac), d11 = dot3(ac, ac);
+    double d20 = dot3(ap, ab), d21 = dot3(ap, ac), den = d00 * d11 - d01 * d01;
+    xi[1] = (d11 * d20 - d01 * d21) / den; xi[2] = (d00 * d21 - d01 * d20) / den;
+    xi[0] = 1 - xi[1] - xi[2];
+  } else if (type <= 3) {
+    int i = type - 1, j = (i + 1) % 3;
+    double e[3], pv[3];
+    sub3(V[j], V[i], e); sub3(p, V[i], pv);
+    double t = dot3(pv, e) / dot3(e, e);
+    xi[i] = 1 - t; xi[j] = t;
+  } else {
+    xi[type - 4] = 1;
+  }
+  double nu[3], r[3];
+  for (int k = 0; k < 3; k++) r[k] = p[k] - (xi[0] * V[0][k] + xi[1] * V[1][k] + xi[2] * V[2][k]);
+  double d = sqrt(dot3(r, r)), dd = d > 1e-300 ? d : 1e-300;
+  for (int k = 0; k < 3; k++) nu[k] = r[k] / dd;
+  for (int k = 0; k < 3; k++) {
+    g[k] = nu[k]; g[3 + k] = -xi[0] * nu[k]; g[6 + k] = -xi[1] * nu[k];
+    g[9 + k] = -xi[2] * nu[k];
+  }
+  return d;
+}
+
 void pt_hess(long m, const double *y, double rel, double *H) {
   for (long i = 0; i < m; i++) {
     double yy[12], gp[12], gm[12], g0[12], *h = H + 144 * i;
     memcpy(yy, y + 12 * i, sizeof yy);
-    double d = pt_one(yy, g0), step = rel * d > 1e-12 ? rel * d : 1e-12;
+    int type = pt_type(yy);
+    double d = pt_fixed(yy, type, g0), step = rel * d > 1e-12 ? rel * d : 1e-12;
     for (int j = 0; j < 12; j++) {
       double keep = yy[j];
-      yy[j] = keep + step; pt_one(yy, gp);
-      yy[j] = keep - step; pt_one(yy, gm);
+      yy[j] = keep + step; pt_fixed(yy, type, gp);
+      yy[j] = keep - step; pt_fixed(yy, type, gm);
       yy[j] = keep;
       for (int r = 0; r < 12; r++) h[12 * r + j] = (gp[r] - gm[r]) / (2 * step);
     }
@@ -149,11 +197,32 @@ static void barrier1(double d, double delta, double *b, double *db) {
   *db = -(2 * g * l + g * g / d);
 }
 
-static double ee_one(const double *y, double w, double eps, double delta, double *g,
-                     double *dist) {
+/* closest-point parameters of the case found at the unperturbed state: fs/ft < 0 free (the
+   lines' own minimiser), else fixed at that value (an end of the segment) */
+static void ee_params(const double *y, double fs, double ft, double *sp, double *tp) {
   const double *a0 = y, *a1 = y + 3, *b0 = y + 6, *b1 = y + 9;
-  double s, t;
-  double d = seg_closest(a0, a1, b0, b1, &s, &t);
+  double d1[3], d2[3], r[3];
+  sub3(a1, a0, d1); sub3(b1, b0, d2); sub3(a0, b0, r);
+  double a = dot3(d1, d1), e = dot3(d2, d2), b = dot3(d1, d2), c = dot3(d1, r);
+  double f = dot3(d2, r), den = a * e - b * b, s = fs, t = ft;
+  if (fs < 0 && ft < 0) { s = (b * f - c * e) / den; t = (a * f - b * c) / den; }
+  else if (fs < 0) s = (t * b - c) / a;
+  else if (ft < 0) t = (b * s + f) / e;
+  *sp = s; *tp = t;
+}
+
+static double ee_one_case(const double *y, double w, double eps, double delta, double *g,
+                          double *dist, int fixed_case, double fs, double ft) {
+  const double *a0 = y, *a1 = y + 3, *b0 = y + 6, *b1 = y + 9;
+  double s, t, d;
+  if (fixed_case) {
+    ee_params(y, fs, ft, &s, &t);
+    double r[3];
+    for (int k = 0; k < 3; k++) r[k] = a0[k] + s * (a1[k] - a0[k]) - b0[k] - t * (b1[k] - b0[k]);
+    d = sqrt(dot3(r, r));
+  } else {
+    d = seg_closest(a0, a1, b0, b1, &s, &t);
+  }
   *dist = d;
   double nu[3], dd = d > 1e-300 ? d : 1e-300;
   for (int k = 0; k < 3; k++)
@@ -176,6 +245,11 @@ static double ee_one(const double *y, double w, double eps, double delta, double
   return w * moll * b;
 }
 
+static double ee_one(const double *y, double w, double eps, double delta, double *g,
+                     double *dist) {
+  return ee_one_case(y, w, eps, delta, g, dist, 0, -1, -1);
+}
+
 void ee_energy(long m, const double *y, const double *w, const double *eps, double delta,
                double *E, double *g, double *d) {
   for (long i = 0; i < m; i++)
@@ -187,12 +261,16 @@ void ee_hess(long m, const double *y, const double *w, const double *eps, double
   for (long i = 0; i < m; i++) {
     double yy[12], gp[12], gm[12], g0[12], d, dummy, *h = H + 144 * i;
     memcpy(yy, y + 12 * i, sizeof yy);
-    ee_one(yy, w[i], eps[i], delta, g0, &d);
+    double s0, t0;
+    d = seg_closest(yy, yy + 3, yy + 6, yy + 9, &s0, &t0);
+    /* an end parameter (0 or 1) stays fixed, an interior one follows the lines */
+    double fs = (s0 <= 0 || s0 >= 1) ? s0 : -1, ft = (t0 <= 0 || t0 >= 1) ? t0 : -1;
+    ee_one_case(yy, w[i], eps[i], delta, g0, &d, 1, fs, ft);
     double step = rel * d > 1e-12 ? rel * d : 1e-12;
     for (int j = 0; j < 12; j++) {
       double keep = yy[j];
-      yy[j] = keep + step; ee_one(yy, w[i], eps[i], delta, gp, &dummy);
-      yy[j] = keep - step; ee_one(yy, w[i], eps[i], delta, gm, &dummy);
+      yy[j] = keep + step; ee_one_case(yy, w[i], eps[i], delta, gp, &dummy, 1, fs, ft);
+      yy[j] = keep - step; ee_one_case(yy, w[i], eps[i], delta, gm, &dummy, 1, fs, ft);
       yy[j] = keep;
       for (int r = 0; r < 12; r++) h[12 * r + j] = (gp[r] - gm[r]) / (2 * step);
     }
