@@ -6,7 +6,7 @@ import ufl
 
 from .kinematics import Membrane, unit_normal
 
-__all__ = ["follower_pressure", "dead_pressure"]
+__all__ = ["follower_pressure", "dead_pressure", "follower_potential", "dead_potential"]
 
 
 def follower_pressure(p, m: Membrane, v) -> ufl.core.expr.Expr:
@@ -26,3 +26,22 @@ def follower_pressure(p, m: Membrane, v) -> ufl.core.expr.Expr:
 def dead_pressure(p, m: Membrane, v) -> ufl.core.expr.Expr:
     """Virtual work of a pressure ``p`` along the fixed reference normal, per reference area."""
     return p * ufl.dot(unit_normal(m.J0), v)
+
+
+def follower_potential(p, m: Membrane, x) -> ufl.core.expr.Expr:
+    """Potential of :func:`follower_pressure` per reference area, ``-p`` x the volume swept
+    toward the atrium, with ``x`` the deformed position:
+
+    .. math:: \\Pi_p = -\\frac{p}{3}\\, \\mathbf x \\cdot (\\mathbf j_1 \\times \\mathbf j_2)
+              \\, d\\xi
+
+    Its variation is ``-p n . du da`` wherever the boundary is held (a clamped annulus): the
+    boundary term of an open surface vanishes with ``du`` there. A merit function for the
+    solver, not part of the residual.
+    """
+    return -p / 3 * ufl.dot(x, ufl.cross(m.J[:, 0], m.J[:, 1])) / ufl.sqrt(ufl.det(m.G))
+
+
+def dead_potential(p, m: Membrane, u) -> ufl.core.expr.Expr:
+    """Potential of :func:`dead_pressure` per reference area, ``-p N . u``."""
+    return -p * ufl.dot(unit_normal(m.J0), u)

@@ -18,7 +18,7 @@ from petsc4py import PETSc
 
 from mvfem.errors import InputError
 from mvfem.forms import LAWS, Membrane, cauchy_stress, is_exponential, membrane, unit_normal
-from mvfem.forms.pressure import dead_pressure, follower_pressure
+from mvfem.forms.pressure import dead_potential, dead_pressure, follower_potential, follower_pressure
 from mvfem.scene import Scene
 
 __all__ = ["Model", "Region", "build_model", "build_mesh", "default_size", "lumped_mass"]
@@ -83,6 +83,10 @@ class Model:
     contact: object = None       # mvfem.contact.Contact
     point_terms: object = None   # mvfem.nodal.PointTerms
     phi: object = None           # Laplace coordinate of a valve (0 annulus, 1 free edge)
+    #: total potential of the forms (strain and bending energy minus the pressure's
+    #: potential; point terms add theirs), whose derivative is ``residual`` where the
+    #: boundary is held: the solver's merit function (mvfem.solver.PseudoTransient)
+    potential: ufl.core.expr.Expr | None = None
 
     @property
     def comm(self):
@@ -288,8 +292,10 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
     dxp = ufl.Measure("dx", domain=msh, metadata=meta)
     if load["follower"]:
         p_term = follower_pressure(pressure, kin, v) * dxp
+        p_pot = follower_potential(pressure, kin, ufl.SpatialCoordinate(msh) + u) * dxp
     else:
         p_term = dead_pressure(pressure, kin, v) * dxp
+        p_pot = dead_potential(pressure, kin, u) * dxp
 
     area = comm.allreduce(fem.assemble_scalar(fem.form(1.0 * dxp)), op=MPI.SUM)
     L = float(np.sqrt(area))
@@ -321,7 +327,8 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
                   regions=regions, fibre=fibre, radial=radial, circumferential=circ,
                   pressure=pressure, p_target=p_target, stabiliser_scale=stab_scale,
                   energy=energy, residual=residual, load_form=p_term, bcs=bcs,
-                  quadrature_degree=q, length_scale=L, info={"area_mm2": area}, phi=phi)
+                  quadrature_degree=q, length_scale=L, info={"area_mm2": area}, phi=phi,
+                  potential=energy + p_pot)
     _point_terms(model)
     return model
 

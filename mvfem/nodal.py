@@ -186,6 +186,11 @@ class PointTerms:
             self._last_x, self._last = x, blocks
         return blocks
 
+    def energy(self, x_owned: np.ndarray) -> float:
+        """Sum of the terms' energies at ``x`` (collective; every rank gets it)."""
+        e = sum(blk.energy for blk in self.evaluate(x_owned))
+        return float(self.view.comm.bcast(e, root=0))
+
     def step_limit(self, x_owned: np.ndarray, dx_owned: np.ndarray) -> float:
         """Fraction of the update ``dx`` the terms allow (collective; 1 without limits)."""
         limiters = [t for t in self.terms if hasattr(t, "step_limit")]
