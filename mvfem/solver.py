@@ -111,7 +111,8 @@ class SNESProblem:
         self.prefix = prefix
         self.snes.setOptionsPrefix(prefix)
         opts = PETSc.Options(prefix)
-        for k, v in {**DEFAULT_OPTIONS, **(options or {})}.items():
+        self._options = {**DEFAULT_OPTIONS, **(options or {})}
+        for k, v in self._options.items():
             opts[k] = v
         self.snes.setFunction(self._residual, self.b)
         self.snes.setJacobian(self._jacobian, self.A)
@@ -264,9 +265,13 @@ class SNESProblem:
         return self.b.norm()
 
     def destroy(self) -> None:
-        """Free the PETSc objects."""
+        """Free the PETSc objects and this problem's prefixed options: PETSc's options
+        table is finite (a test session of 300 solves filled it: error 55 setting one)."""
         for obj in (self.snes, self.A, self.b, self.x, self._work):
             obj.destroy()
+        opts = PETSc.Options(self.prefix)
+        for k in self._options:
+            opts.delValue(k)
 
 
 @dataclass
