@@ -645,6 +645,11 @@ def _chordae_on_root(scene: Scene, surface, view, edges=None):
                 on = sel & (leaflet == name)
                 pos[on] = surface.along_leaflet(surface.insertion_points[on], str(name))
             sel &= (pos >= span[0]) & (pos <= span[1])
+        if not sel.any() and scene["repair"]["resection"] is not None:
+            # the resection took out the tissue (and the chords) the edit was about: a
+            # ruptured segment resected is the usual repair
+            log.info(f"chordae.edit[{i}]: selects no chord left after the resection")
+            continue
         if not sel.any():
             raise InputError(f"{scene.source}: chordae.edit[{i}]: selects no chord of this valve "
                              f"(leaflets: {', '.join(sorted(set(leaflet)))}; families: "
