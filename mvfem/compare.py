@@ -29,14 +29,14 @@ import csv
 import io
 import math
 import re
-import tomllib
 from pathlib import Path
 
 import numpy as np
+import tomllib
 
 from mvfem.errors import InputError
 
-__all__ = ["load_repair", "compare", "COLUMNS", "DIASTOLIC_PRESSURE"]
+__all__ = ["COLUMNS", "DIASTOLIC_PRESSURE", "compare", "load_repair"]
 
 #: the atrial-side pressure of the diastolic check (Pa): the valve opens; a clip shows its two
 #: orifices
@@ -125,11 +125,11 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
     Returns:
         dict with ``rows`` (the table), ``files``, ``counts``.
     """
+    import hashlib
+
     from mvfem.outputs import prepare_out
     from mvfem.scene import load_scene
     from mvfem.study import Case, RunSpec, Study, _leaflet_of, run_study
-
-    import hashlib
 
     scene_path = Path(scene_path).resolve()
     base = load_scene(scene_path)
@@ -148,7 +148,7 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
             name += "_"
         cases.append((name, title, ch))
     view = None
-    for name, title, ch in cases:  # every repair built before anything runs
+    for name, _title, ch in cases:  # every repair built before anything runs
         v = _check_buildable(base.with_changes({**changes, **ch}),
                              "the scene" if name == "unrepaired" else
                              str(repairs[[c[0] for c in cases].index(name) - 1]))
@@ -162,7 +162,7 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
             for leaf in ("anterior", "posterior")}
     digest = hashlib.sha256(scene_path.read_bytes()).hexdigest()
     runs, study_cases = [], []
-    for name, title, ch in cases:
+    for name, _title, ch in cases:
         study_cases.append(Case(name=name, scene=str(scene_path), changes={**changes, **ch}))
         for phase, extra in phases:
             all_changes = {**changes, **ch, **extra, "output.xdmf": True}

@@ -24,8 +24,15 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["loop_centroid", "order_loop", "arc_length", "landmarks", "match_loop",
-           "landmark_map", "ccw"]
+__all__ = [
+    "arc_length",
+    "ccw",
+    "landmark_map",
+    "landmarks",
+    "loop_centroid",
+    "match_loop",
+    "order_loop",
+]
 
 
 def loop_centroid(loop: np.ndarray) -> np.ndarray:

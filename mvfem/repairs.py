@@ -53,9 +53,20 @@ import numpy as np
 
 from mvfem.errors import InputError
 
-__all__ = ["RING_SHAPES", "ring_axes", "ring_points", "ring_targets", "ring_perimeter",
-           "free_edge", "snap_to_free_edge", "clip_pairs", "neochordae", "resect",
-           "on_root", "TIE_STIFFNESS"]
+__all__ = [
+    "RING_SHAPES",
+    "TIE_STIFFNESS",
+    "clip_pairs",
+    "free_edge",
+    "neochordae",
+    "on_root",
+    "resect",
+    "ring_axes",
+    "ring_perimeter",
+    "ring_points",
+    "ring_targets",
+    "snap_to_free_edge",
+]
 
 log = logging.getLogger(__name__)
 
@@ -126,7 +137,7 @@ def ring_targets(loop: np.ndarray, frame: np.ndarray, commissures: np.ndarray, s
     Raises:
         InputError: the ring would enlarge the annulus, or cannot be matched to it.
     """
-    from mvfem.prescribed import arc_length, ccw, landmarks, landmark_map, loop_centroid
+    from mvfem.prescribed import arc_length, ccw, landmark_map, landmarks, loop_centroid
 
     frame = np.asarray(frame, dtype=float)
     loop = np.asarray(loop, dtype=float)
@@ -456,7 +467,7 @@ def resect(surface, spec: dict, comm, source: str, contact_gap: float):
                     "between": [float(a), float(b)], "depth": float(spec["depth"]),
                     "cells_removed": int(remove.sum()), "area_removed_mm2":
                     float(area[remove].sum()), "leaflet_share": float(share),
-                    "cut_length_mm": float(total), "sutures": int(len(pairs)),
+                    "cut_length_mm": float(total), "sutures": len(pairs),
                     "chordae_dropped": int((~keep_line).sum())}
             return new, raw.points[pairs], info
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from mvfem.nodal import Blocks, smooth_penalty
 
-__all__ = ["Ties", "TIE_ONSET"]
+__all__ = ["TIE_ONSET", "Ties"]
 
 #: rounding of the slack-to-taut transition of a tie, mm (a tie at its rest length must not
 #: switch its full stiffness on and off between Newton iterates; cf. mvfem.chordae.ONSET)
@@ -111,5 +111,5 @@ class Ties:
                               "rest_length_mm": float(self.target_length[sel].max()),
                               "max_force_N": float(force[sel].max()),
                               "total_force_N": float(force[sel].sum()),
-                              "groups": int(len(np.unique(self.group[sel])))}
+                              "groups": len(np.unique(self.group[sel]))}
         return out
