@@ -155,7 +155,7 @@ class _PseudoTimeProgress:
     """A line every couple of seconds of a pseudo-time run on rank 0 (every step with -v)."""
 
     def __init__(self, load_norm: float, enabled: bool):
-        self.f, self.enabled, self.t0 = load_norm, enabled, time.perf_counter()
+        self.f, self.enabled, self.t0 = load_norm or 1.0, enabled, time.perf_counter()
         self.next = 2.0
 
     def __call__(self, rec: PseudoTimeRecord, ptc: PseudoTransient) -> None:
@@ -184,18 +184,19 @@ def _load_norm(model: Model) -> float:
     return n
 
 
-#: with a prescribed motion and no pressure, tolerances are relative to the load of this
-#: pressure (Pa) instead: a nominal force scale of the membrane
+#: with no pressure (a prescribed motion the load, or nothing at all), tolerances are relative
+#: to the load of this pressure (Pa) instead: a nominal force scale of the membrane
 NOMINAL_PRESSURE = 1e3
 
 
 def _load_scale(model: Model) -> float:
     """||f_p|| at the full pressure: the force scale of the tolerances. A scene without
-    pressure whose load is a prescribed motion (a ring at zero pressure, say) takes the load
-    of :data:`NOMINAL_PRESSURE` instead."""
+    pressure (its load a prescribed motion, a ring at zero pressure say, or none: the state
+    stays the reference one) takes the load of :data:`NOMINAL_PRESSURE` instead; a zero
+    scale would make every tolerance zero (never met) and the progress line divide by it."""
     p = model.pressure.value.copy()
     model.pressure.value = model.p_target
-    if model.ramp is not None and abs(model.p_target) < 1e-12:
+    if abs(model.p_target) < 1e-12:
         model.pressure.value = NOMINAL_PRESSURE
     try:
         return _load_norm(model)
@@ -509,7 +510,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
             model, problem, s, max_steps, load_norm, tight_atol, mass, centre, progress)
     problem.set_proximal(0.0)
     r_norm, f_norm = problem.residual_norm(), _load_norm(model)
-    if model.ramp is not None and abs(model.p_target) < 1e-12:
+    if abs(model.p_target) < 1e-12:
         f_norm = load_norm  # no pressure: the nominal scale the tolerances used
     rel = r_norm / f_norm if f_norm > 0 else r_norm
     q_max = _max_exponent(model)

@@ -99,3 +99,24 @@ def test_contract_python_api(tmp_path):
     assert isinstance(result, mvfem.Result) and result.converged
     assert result.summary["pressure_Pa"] == pytest.approx(60 * 133.322368, rel=1e-8)
     assert result.u.function_space.mesh is result.model.mesh
+
+
+@pytest.mark.parametrize("method", ["load-steps", "pseudo-time"])
+def test_zero_pressure_without_motion_stays_at_rest(tmp_path, capsys, method):
+    """No pressure and no prescribed motion: the reference state is the equilibrium (u = 0,
+    zero stress). Before, the force scale of the tolerances was the pressure load, 0: the
+    pseudo-time progress line divided by it (ZeroDivisionError) and load stepping could never
+    meet a zero tolerance (stopped short, exit 3)."""
+    scene = tmp_path / "rest.toml"
+    scene.write_text('title = "disk at rest"\n[mesh]\ngenerator = "disk"\nradius = 10.0\n'
+                     'size = 2.0\n[[region]]\nlaw = "mny"\nparams = "MNY-mean"\n'
+                     '[load]\npressure = 0.0\n')
+    # -v: every progress line is formatted and logged
+    rc = main(["-v", "run", str(scene), "--out", str(tmp_path / "run"),
+               "--set", f"solver.method={method}"])
+    assert rc == 0, capsys.readouterr().err[-2000:]
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["converged"] and s["pressure_Pa"] == 0.0
+    assert s["max_displacement_mm"] == 0.0
+    q = s["regions"]["membrane"]["radial_cauchy_stress_Pa"]
+    assert q["p5"] == 0.0 and q["p95"] == 0.0
