@@ -178,7 +178,8 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
     rows = _rows(study, out, {c[0]: c[1] for c in cases})
     files = [_write_csv(rows, out / "comparison.csv")]
     files += [p for p in (_bars(rows, out / "comparison.png"),
-                          _shapes(study, out, view, out / "shapes.png")) if p is not None]
+                          _shapes(study, out, view, out / "shapes.png",
+                                  {c[0]: c[1] for c in cases}, diastolic)) if p is not None]
     return {"rows": rows, "files": files, "counts": res}
 
 
@@ -271,6 +272,7 @@ def table_text(rows: list[dict]) -> str:
             ("chordae_force_total_N", "chordae N", "{:.2f}"),
             ("neochord_force_total_N", "neochordae N", "{:.2f}"),
             ("tie_force_max_N", "tie max N", "{:.2f}"),
+            ("diastole", "diastole", "{}"),
             ("diastolic_orifice_area_mm2", "diastolic orifice mm2", "{:.0f}"),
             ("diastolic_orifice_count", "orifices", "{}")]
     lines = ["| " + " | ".join(c[1] for c in cols) + " |",
@@ -301,43 +303,57 @@ def _plt():
 
 def _bars(rows: list[dict], path: Path) -> Path | None:
     plt = _plt()
-    panels = [("regurgitant_orifice_area_mm2", "regurgitant orifice (mm$^2$)", 1.0),
+    panels = [("regurgitant_orifice_area_mm2", "regurgitant orifice area (mm$^2$)", 1.0),
               ("coaptation_length_mm", "coaptation length (mm)", 1.0),
               ("coaptation_area_mm2", "coaptation area (mm$^2$)", 1.0),
               ("tenting_height_mm", "tenting height (mm)", 1.0),
-              ("stress_p95_Pa", "radial stress p95 (kPa)", 1e-3),
-              ("stress_max_Pa", "radial stress peak (kPa)", 1e-3),
-              ("chordae_force_total_N", "chordae + neochordae (N)", 1.0),
-              ("diastolic_orifice_area_mm2", "diastolic orifice (mm$^2$)", 1.0)]
+              ("stress_p95_Pa", "radial Cauchy stress, 95th pct. (kPa)", 1e-3),
+              ("stress_max_Pa", "radial Cauchy stress, peak (kPa)", 1e-3),
+              ("chordae_force_total_N", "chordae + neochordae force (N)", 1.0),
+              ("diastolic_orifice_area_mm2", "diastolic orifice area (mm$^2$)", 1.0)]
     names = [r["case"] for r in rows]
-    fig, axes = plt.subplots(2, 4, figsize=(15, 6.5), dpi=110)
+    fig, axes = plt.subplots(2, 4, figsize=(15, 7), dpi=110)
     colours = ["0.45"] + [f"C{i}" for i in range(len(rows) - 1)]
     for ax, (key, label, scale) in zip(axes.ravel(), panels):
-        vals = [np.nan if r.get(key) is None else r[key] * scale for r in rows]
-        ax.bar(range(len(rows)), vals, color=colours)
+        vals = np.array([np.nan if r.get(key) is None else r[key] * scale for r in rows])
+        ax.bar(range(len(rows)), np.nan_to_num(vals), color=colours)
+        ax.axhline(0.0, color="k", linewidth=0.6)
         ax.set_title(label, fontsize=10)
         ax.set_xticks(range(len(rows)))
         ax.set_xticklabels(names, rotation=30, ha="right", fontsize=8)
-        if key == "diastolic_orifice_area_mm2":
-            for i, r in enumerate(rows):
-                if r.get("diastolic_orifice_count") is not None and np.isfinite(vals[i]):
-                    ax.annotate(f"{r['diastolic_orifice_count']} orifice"
-                                f"{'s' if r['diastolic_orifice_count'] != 1 else ''}",
-                                (i, vals[i]), ha="center", va="bottom", fontsize=8)
+        top = np.nanmax(np.abs(vals)) if np.isfinite(vals).any() else 1.0
+        ax.set_ylim(min(0.0, np.nanmin(vals) * 1.15) if np.isfinite(vals).any() else 0.0,
+                    1.18 * top if top > 0 else 1.0)
+        status_key = "diastole" if key == "diastolic_orifice_area_mm2" else "systole"
         for i, r in enumerate(rows):
-            if r.get("systole") not in (None, "converged") and key != \
-                    "diastolic_orifice_area_mm2":
-                ax.annotate("not conv.", (i, 0), ha="center", va="bottom", fontsize=7,
-                            color="red")
-    fig.suptitle("repairs compared (systole; diastolic orifice under an atrial-side pressure)")
+            words = []
+            if not np.isfinite(vals[i]):
+                words.append("n/a")
+            else:
+                words.append(f"{vals[i]:.0f}" if abs(vals[i]) >= 100 else f"{vals[i]:.3g}")
+            if key == "diastolic_orifice_area_mm2" and r.get("diastolic_orifice_count"):
+                n = r["diastolic_orifice_count"]
+                words.append(f"{n} orifice{'s' if n != 1 else ''}")
+            if r.get(status_key) not in (None, "converged"):
+                words.append(f"({r.get(status_key)})")
+            ax.annotate("\n".join(words), (i, max(vals[i], 0.0) if np.isfinite(vals[i]) else 0.0),
+                        ha="center", va="bottom", fontsize=7,
+                        color="red" if r.get(status_key) not in (None, "converged") else "k")
+    legend = "; ".join(f"{r['case']} = {r['title']}" for r in rows if r["title"] != r["case"])
+    fig.suptitle("repairs compared: systole at the scene's pressure; diastolic orifice under "
+                 "an atrial-side pressure" + (f"\n{legend}" if legend else ""), fontsize=10)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
     return path
 
 
-def _shapes(study, out: Path, view: dict | None, path: Path) -> Path | None:
-    """The closed (and diastolic) valves side by side."""
+def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None = None,
+            diastolic: float | None = None) -> Path | None:
+    """The closed (and diastolic) valves side by side: one length scale per row (mm), one
+    colour range (radial stress, 5-95th percentile over every closed valve)."""
+    import textwrap
+
     from matplotlib.collections import PolyCollection
 
     from mvfem.figures import read_fields
@@ -345,6 +361,7 @@ def _shapes(study, out: Path, view: dict | None, path: Path) -> Path | None:
     plt = _plt()
     phases = study.sets
     cases = [c.name for c in study.cases]
+    titles = titles or {}
     data = {}
     for spec in study.runs:
         f = read_fields(spec.dir(out))
@@ -359,33 +376,68 @@ def _shapes(study, out: Path, view: dict | None, path: Path) -> Path | None:
     stresses = [np.log10(np.clip(f["radial_cauchy_stress_Pa"], 1.0, None))
                 for (c, p), f in data.items() if p == "systole"]
     lo, hi = (np.percentile(np.concatenate(stresses), [5, 95]) if stresses else (0.0, 1.0))
-    n_rows = 2 + (len(phases) > 1)
-    fig, axes = plt.subplots(n_rows, len(cases), figsize=(3.2 * len(cases), 3.0 * n_rows),
-                             dpi=110, squeeze=False)
+    kinds = [("systole", "top"), ("systole", "side")]
+    if len(phases) > 1:
+        kinds.append(("diastole", "top"))
+    row_names = ["systole, seen from the atrium\n(anterior up), mm",
+                 "systole, side view\n(anterior right, atrium up), mm"]
+    if len(phases) > 1:
+        row_names.append("diastole" + (f" ({diastolic:g} Pa)" if diastolic is not None else "")
+                         + ",\nseen from the atrium, mm")
+
+    def project(x, kind):
+        if kind == "top":
+            return (np.stack([(x - centre) @ right, (x - centre) @ ant], axis=1),
+                    (x - centre) @ axis)
+        return np.stack([(x - centre) @ ant, (x - centre) @ axis], axis=1), (x - centre) @ lat
+
+    # one length scale per row: the same limits in every panel of it
+    limits = []
+    for phase, kind in kinds:
+        pts = [project(f["X"] + f["u"], kind)[0] for (c, p), f in data.items() if p == phase]
+        if pts:
+            pts = np.concatenate(pts)
+            lo_xy, hi_xy = pts.min(axis=0), pts.max(axis=0)
+            pad = 0.04 * (hi_xy - lo_xy).max()
+            limits.append((lo_xy - pad, hi_xy + pad))
+        else:
+            limits.append((np.zeros(2), np.ones(2)))
+    spans = [hi_ - lo_ for lo_, hi_ in limits]
+    heights = [sp[1] / sp[0] for sp in spans]
+    width = 3.4
+    fig, axes = plt.subplots(len(kinds), len(cases),
+                             figsize=(width * len(cases) + 1.6,
+                                      sum(width * h for h in heights) + 1.6),
+                             dpi=110, squeeze=False,
+                             gridspec_kw={"height_ratios": heights})
     pc_last = None
     for j, case in enumerate(cases):
-        for i, (phase, kind) in enumerate([("systole", "top"), ("systole", "side")]
-                                          + ([("diastole", "top")] if len(phases) > 1 else [])):
+        for i, (phase, kind) in enumerate(kinds):
             ax = axes[i, j]
             ax.set_aspect("equal")
-            ax.set_xticks([])
-            ax.set_yticks([])
+            ax.set_xlim(limits[i][0][0], limits[i][1][0])
+            ax.set_ylim(limits[i][0][1], limits[i][1][1])
+            ax.tick_params(labelsize=7)
+            if j:
+                ax.set_yticklabels([])
             f = data.get((case, phase))
             if i == 0:
-                ax.set_title(case, fontsize=10)
+                ax.set_title("\n".join(textwrap.wrap(titles.get(case, case), 28)), fontsize=9)
+            if j == 0:
+                ax.set_ylabel(row_names[i], fontsize=8)
             if f is None:
                 ax.text(0.5, 0.5, "no result", ha="center", transform=ax.transAxes)
                 continue
+            spec = next(r for r in study.runs if r.case == case and r.set == phase)
+            s = _summary(spec.dir(out)) or {}
+            if not s.get("converged"):
+                ax.text(0.02, 0.02, "not converged: last state", transform=ax.transAxes,
+                        fontsize=7, color="red")
             x = f["X"] + f["u"]
             cells = f["cells"]
             leaflet = np.where(f["region"] == 0, 0, 1)
-            if kind == "top":
-                p2 = np.stack([(x - centre) @ right, (x - centre) @ ant], axis=1)
-                depth = ((x - centre) @ axis)[cells].mean(axis=1)
-            else:
-                p2 = np.stack([(x - centre) @ ant, (x - centre) @ axis], axis=1)
-                depth = ((x - centre) @ lat)[cells].mean(axis=1)
-            order = np.argsort(depth)
+            p2, d = project(x, kind)
+            order = np.argsort(d[cells].mean(axis=1))
             if phase == "systole" and kind == "top":
                 v = np.log10(np.clip(f["radial_cauchy_stress_Pa"], 1.0, None))
                 pc = PolyCollection(p2[cells[order]], array=v[order], cmap="viridis",
@@ -397,16 +449,11 @@ def _shapes(study, out: Path, view: dict | None, path: Path) -> Path | None:
                 pc = PolyCollection(p2[cells[order]], facecolors=colours[leaflet[order]],
                                     edgecolors="k", linewidths=0.1)
             ax.add_collection(pc)
-            ax.autoscale_view()
-        axes[0, 0].set_ylabel("systole, from the atrium", fontsize=9)
-        axes[1, 0].set_ylabel("systole, side (anterior right)", fontsize=9)
-        if n_rows > 2:
-            axes[2, 0].set_ylabel("diastole, from the atrium", fontsize=9)
     if pc_last is not None:
-        fig.colorbar(pc_last, ax=axes[0, :].tolist(), shrink=0.8,
-                     label="radial Cauchy stress, log10 Pa")
-    fig.suptitle("closed valves (top: radial stress, 5-95 % of all; blue anterior, "
-                 "red posterior)", fontsize=10)
+        fig.colorbar(pc_last, ax=axes[0, :].tolist(), shrink=0.9, pad=0.02,
+                     label="radial Cauchy stress\n(log10 Pa; 5-95 % of all cases)")
+    fig.suptitle("closed valves, same scale in each row (top row: radial stress, one colour "
+                 "range for all; other rows: blue anterior, red posterior)", fontsize=10)
     fig.savefig(path)
     plt.close(fig)
     return path
