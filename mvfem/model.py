@@ -168,9 +168,57 @@ def _resected(scene: Scene, surface, comm):
         return surface
     from mvfem.repairs import resect
 
+    # the radial direction of the tissue left is the one it had before the cut: the Laplace
+    # coordinate of the whole valve, not one re-solved with the cut made a free edge (phi = 1
+    # along the cut: cells with three nodes on it have no gradient, and 0/0 = NaN radial
+    # directions; the bottom of a quadrangular cut would also turn radial into circumferential)
+    phi = _laplace_phi(surface, scene.source)
     valve, sutures, _ = resect(surface, spec, comm, scene.source, 0.0)
     valve.sutures = sutures if spec["sutures"] else np.zeros((0, 2, 3))
+    if phi is not None:
+        valve.radial_coordinate = _gather_nodal(phi)
     return valve
+
+
+def _laplace_phi(surface, source: str):
+    """The Laplace coordinate of a valve surface (0 annulus, 1 free edge), or None."""
+    annulus = _annulus_facets(surface)
+    if annulus is None:
+        return None
+    from mvfem.meshes.fibres import boundary_split, laplace_coordinate
+
+    msh = surface.mesh
+    vertices = dmesh.compute_incident_entities(msh, annulus, msh.topology.dim - 1, 0)
+    ann, free_edge = boundary_split(msh, vertices)
+    try:
+        return laplace_coordinate(msh, ann, free_edge)
+    except ValueError as e:
+        raise InputError(f"{source}: mesh: {e}") from None
+
+
+def _gather_nodal(f) -> tuple[np.ndarray, np.ndarray]:
+    """(coordinates, values) of a scalar P1 function's owned dofs, gathered on every rank."""
+    V = f.function_space
+    n = V.dofmap.index_map.size_local
+    comm = V.mesh.comm
+    x = np.concatenate(comm.allgather(V.tabulate_dof_coordinates()[:n]))
+    v = np.concatenate(comm.allgather(f.x.array[:n].copy()))
+    return x, v
+
+
+def _nodal_function(msh, points: np.ndarray, values: np.ndarray, name: str):
+    """The P1 function on ``msh`` taking ``values`` at ``points`` (every node of ``msh`` is
+    one of ``points``: a resected valve keeps the coordinates of its nodes)."""
+    from scipy.spatial import cKDTree
+
+    V = fem.FunctionSpace(msh, ("Lagrange", 1))
+    x = V.tabulate_dof_coordinates()
+    dist, idx = cKDTree(points).query(x)
+    if len(dist) and dist.max() > 1e-9 * (1.0 + np.abs(points).max()):
+        raise RuntimeError(f"{name}: a node of the mesh is not one of the given points")
+    f = fem.Function(V, name=name)
+    f.x.array[:] = values[idx]
+    return f
 
 
 def _valve(scene: Scene, comm, size: float):
@@ -270,16 +318,11 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
     v = ufl.TestFunction(V)
 
     annulus = _annulus_facets(surface)
-    phi = None
-    if annulus is not None:
-        from mvfem.meshes.fibres import boundary_split, laplace_coordinate
-
-        vertices = dmesh.compute_incident_entities(msh, annulus, msh.topology.dim - 1, 0)
-        ann, free_edge = boundary_split(msh, vertices)
-        try:
-            phi = laplace_coordinate(msh, ann, free_edge)
-        except ValueError as e:
-            raise InputError(f"{scene.source}: mesh: {e}") from None
+    given = getattr(surface, "radial_coordinate", None)  # a resected valve's, from before
+    if given is not None and annulus is not None:
+        phi = _nodal_function(msh, *given, name="radial_coordinate")
+    else:
+        phi = _laplace_phi(surface, scene.source)
     fibre, radial, circ = _directions(msh, scene["fibres"], phi)
     kin = membrane(u, fibre)
     meta = {"quadrature_degree": q}
