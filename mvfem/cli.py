@@ -249,6 +249,28 @@ def _cmd_study(args) -> int:
     return 0
 
 
+def _cmd_repair_compare(args) -> int:
+    from pathlib import Path
+
+    from mvfem.compare import compare, table_text
+    from mvfem.scene import parse_set_option
+    from mvfem.units import PRESSURE, parse_quantity
+
+    diastolic = None
+    if not args.no_diastole:
+        try:
+            diastolic = parse_quantity(args.diastolic, PRESSURE, "Pa")
+        except ValueError as e:
+            raise InputError(f"--diastolic: {e}") from None
+    changes = dict(parse_set_option(t) for t in (args.set or []))
+    out = Path(args.out) if args.out else Path("results") / f"{Path(args.scene).stem}-repairs"
+    res = compare(args.scene, args.repairs, out, processes=args.processes, diastolic=diastolic,
+                  changes=changes, progress=True)
+    _say(table_text(res["rows"]))
+    _say(f"wrote {', '.join(str(p) for p in res['files'])}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of `mvfem` (exposed for documentation and tests)."""
     p = _Parser(prog="mvfem", description="Mitral valve closure with hyperelastic membranes.")
@@ -298,6 +320,20 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--retry-failed", action="store_true",
                     help="run again the runs recorded as failed")
     st.set_defaults(func=_cmd_study)
+
+    rc = sub.add_parser("repair-compare", help="the unrepaired valve and each repair: "
+                        "comparison.csv, comparison.png, shapes.png")
+    rc.add_argument("scene", help="the pathological valve's scene file (TOML)")
+    rc.add_argument("--repairs", nargs="+", required=True, metavar="REPAIR.toml",
+                    help="repair files: scene keys merged into the scene (README, Repairs)")
+    rc.add_argument("--out", help="comparison directory (default: results/<scene>-repairs)")
+    rc.add_argument("--processes", type=int, help="runs at a time (default: 1)")
+    rc.add_argument("--diastolic", default="-500 Pa",
+                    help="atrial-side pressure of the diastolic runs (default '-500 Pa')")
+    rc.add_argument("--no-diastole", action="store_true", help="systolic runs only")
+    rc.add_argument("--set", action="append", metavar="KEY.PATH=VALUE",
+                    help="change a scene value in every case, e.g. --set mesh.size=4.0")
+    rc.set_defaults(func=_cmd_repair_compare)
 
     m = sub.add_parser("materials", help="list parameter sets with law, values, thickness, source")
     m.add_argument("--leaflet", choices=("anterior", "posterior"))
