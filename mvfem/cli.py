@@ -249,6 +249,26 @@ def _cmd_study(args) -> int:
     return 0
 
 
+def _cmd_bench(args) -> int:
+    import dolfinx  # noqa: F401  (PETSc initialisation is collective: before anything else)
+
+    from mvfem.bench import run_bench
+
+    problems = None
+    if args.problems:
+        problems = tuple(p.strip() for p in args.problems.split(",") if p.strip())
+        known = ("foppl", "neo-hookean", "valve")
+        bad = [p for p in problems if p not in known]
+        if bad:
+            raise InputError(f"--problems: unknown problem {bad[0]!r} (known: {', '.join(known)})")
+    res = run_bench(args.out, quick=args.quick, problems=problems, say=_say)
+    _say("")
+    _say(res["table"])
+    _say(f"\nbench: {len(res['rows'])} rows in {res['time_s']:.1f} s; wrote "
+         + ", ".join(str(f) for f in res["files"]))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of `mvfem` (exposed for documentation and tests)."""
     p = _Parser(prog="mvfem", description="Mitral valve closure with hyperelastic membranes.")
@@ -298,6 +318,14 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--retry-failed", action="store_true",
                     help="run again the runs recorded as failed")
     st.set_defaults(func=_cmd_study)
+
+    be = sub.add_parser("bench", help="speed against error on reference problems: bench.csv, "
+                        "bench_pareto.png, bench.md")
+    be.add_argument("--quick", action="store_true", help="the small sweep (about a minute)")
+    be.add_argument("--out", default="results/bench", help="output directory (default "
+                    "results/bench)")
+    be.add_argument("--problems", help="comma-separated subset of foppl, neo-hookean, valve")
+    be.set_defaults(func=_cmd_bench)
 
     m = sub.add_parser("materials", help="list parameter sets with law, values, thickness, source")
     m.add_argument("--leaflet", choices=("anterior", "posterior"))
