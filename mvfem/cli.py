@@ -333,8 +333,25 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _import_gmsh_before_mpi() -> None:
+    """Import gmsh before MPI starts. gmsh's module runs ``ldconfig -p`` in a child process
+    (ctypes.util.find_library) when imported; under an OpenMPI singleton (no mpirun) that
+    child's exit, after MPI_Init, made `mvfem run` exit with code 1 and no message about one
+    time in two (seen in the hard cases, issue 7: strace shows exit_group(1) right after the
+    ldconfig child's SIGCHLD)."""
+    import sys
+
+    if "mpi4py.MPI" in sys.modules:
+        return
+    try:
+        import gmsh  # noqa: F401
+    except Exception:  # no gmsh: nothing to race with
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run `mvfem` with ``argv`` (default: sys.argv[1:]); returns the exit code."""
+    _import_gmsh_before_mpi()
     try:
         args = build_parser().parse_args(argv)
         _setup_logging(args.verbose)
