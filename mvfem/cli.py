@@ -343,10 +343,10 @@ def _import_gmsh_before_mpi() -> None:
 
     if "mpi4py.MPI" in sys.modules:
         return
-    try:
+    import importlib.util
+
+    if importlib.util.find_spec("gmsh") is not None:  # no gmsh: nothing to race with
         import gmsh  # noqa: F401
-    except Exception:  # no gmsh: nothing to race with
-        pass
 
 
 def main(argv: list[str] | None = None) -> int:
