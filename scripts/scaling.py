@@ -57,6 +57,8 @@ def run_one(case: str, size: float, record: str | None) -> int:
         t = s["timing"]
         row = {"case": case, "size_mm": size, "processes": comm.size, "cells": s["cells"],
                "dofs": s["dofs"], "converged": s["converged"],
+               "stop_reason": s.get("stop_reason") or "",
+               "equilibrium_residual": s.get("equilibrium_residual"),
                "newton_iterations": s["newton_iterations"], "wall_time_s": s["wall_time_s"],
                "assembly_s": t["assembly_s"], "linear_solve_s": t["linear_solve_s"],
                "contact_s": t["contact_s"], "build_s": t.get("build_s"),
@@ -69,6 +71,14 @@ def run_one(case: str, size: float, record: str | None) -> int:
             with open(record, "a") as f:
                 f.write(json.dumps(row) + "\n")
     return 0 if s["converged"] else 3
+
+
+def _outcome(r: dict) -> str:
+    if r["converged"]:
+        return "yes"
+    res = r.get("equilibrium_residual")
+    return ("**no**" + (f", residual {res:.1e} of the load" if res is not None else "")
+            + (f": {r['stop_reason']}" if r.get("stop_reason") else ""))
 
 
 def table(rows: list[dict]) -> str:
@@ -88,7 +98,7 @@ def table(rows: list[dict]) -> str:
                 same = (f"coaptation {r['coaptation_length_mm']:.3f} vs "
                         f"{base['coaptation_length_mm']:.3f} mm")
         lines.append(f"| {r['case']} (size {r['size_mm']:g}) | {r['cells']} | {r['dofs']} | "
-                     f"{r['processes']} | {r['converged']} | {r['newton_iterations']} | "
+                     f"{r['processes']} | {_outcome(r)} | {r['newton_iterations']} | "
                      f"{r['wall_time_s']:.1f} | {r['assembly_s']:.1f} | {r['linear_solve_s']:.1f}"
                      f" | {r['contact_s']:.1f} | {speed:.2f} | {same} |")
     return "\n".join(lines)
