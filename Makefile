@@ -10,7 +10,7 @@ APT_PACKAGES := python3-dolfinx python3-gmsh python3-meshio python3-venv python3
 MPI_ENV := OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OPENBLAS_NUM_THREADS=1
 MPIRUN := $(MPI_ENV) mpirun --oversubscribe -n 2
 
-.PHONY: setup demo test test-serial test-mpi clean
+.PHONY: setup demo bench test test-serial test-mpi test-hard clean
 
 setup: $(STAMP)
 	@:
@@ -37,6 +37,11 @@ $(STAMP): pyproject.toml Makefile
 demo: setup
 	$(VENV)/bin/mvfem demo --out results/demo
 
+# Speed against error (issue 7): the full sweep, 10-20 min on 2 cores; results/bench/
+# (bench.csv, bench_pareto.png, bench.md). One BLAS thread: timings of one solve at a time.
+bench: setup
+	OPENBLAS_NUM_THREADS=1 $(VENV)/bin/mvfem bench --out results/bench
+
 test: test-serial test-mpi
 
 test-serial: setup
@@ -45,6 +50,11 @@ test-serial: setup
 # -u: each rank's report reaches the log even when mpirun aborts the job
 test-mpi: setup
 	$(MPIRUN) $(PY) -u -m pytest -q -m mpi -p no:cacheprovider --color=no
+
+# The hard cases (issue 7): each ends converged or with exit code 3, never a hang, NaN or
+# traceback; about 10-15 min. The README table: $(PY) scripts/hard_cases.py
+test-hard: setup
+	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q -m hard
 
 clean:
 	rm -rf $(VENV) results .pytest_cache *.egg-info

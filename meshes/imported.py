@@ -174,6 +174,13 @@ def _build(raw: RawSurface, labels: dict[int, str] | None, where: str):
         tri, lines = rep[tri], rep[lines]
 
     _check_cells(points, tri, where, diag)
+    _check_intersections(points, tri, where)
+    slivers = _slivers(points, tri)
+    if len(slivers):
+        said.append(f"{where}: {len(slivers)} sliver triangle(s) with an angle below "
+                    f"{SLIVER_DEG:g} deg (smallest {slivers[0][1]:.2g} deg, at "
+                    f"{_at(points[tri[slivers[0][0]]].mean(0))}); kept as they are, but expect "
+                    "a poorly conditioned tangent and stresses that are not resolved there")
     edges, edge_tri, counts = _edges(tri)
     bad = counts > 2
     if bad.any():
@@ -343,6 +350,64 @@ def _normals(X, cells):
     """Cross products of the cell tangents (twice the area along the unit normal)."""
     x = X[cells]
     return np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+
+
+#: smallest angle of a triangle below which import warns (a sliver), degrees
+SLIVER_DEG = 5.0
+
+
+def _slivers(points, tri) -> list[tuple[int, float]]:
+    """(triangle, smallest angle in degrees) of the slivers, smallest first."""
+    x = points[tri]
+    ang = np.empty((len(tri), 3))
+    for k in range(3):
+        a, b = x[:, (k + 1) % 3] - x[:, k], x[:, (k + 2) % 3] - x[:, k]
+        c = np.einsum("ij,ij->i", a, b) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+        ang[:, k] = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+    small = ang.min(axis=1)
+    bad = np.flatnonzero(small < SLIVER_DEG)
+    return [(int(t), float(small[t])) for t in bad[np.argsort(small[bad])]]
+
+
+def _check_intersections(points, tri, where: str) -> None:
+    """Refuse a surface that passes through itself: an edge crossing the interior of a
+    triangle it shares no node with (a folded or inverted triangle, or one leaflet through
+    another). The open valve must be free of crossings: contact only keeps apart surfaces
+    that start apart (the crossing tests ignore pairs that were close in the open valve)."""
+    from scipy.spatial import cKDTree
+
+    edges = np.unique(np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]),
+                              axis=1), axis=0)
+    if len(edges) == 0:
+        return
+    x = points[tri]
+    cen = x.mean(axis=1)
+    radius = np.linalg.norm(x - cen[:, None], axis=2).max()
+    p, q = points[edges[:, 0]], points[edges[:, 1]]
+    half = 0.5 * np.linalg.norm(q - p, axis=1).max()
+    near = cKDTree(cen).query_ball_point(0.5 * (p + q), half + radius)
+    ei = np.repeat(np.arange(len(edges)), [len(n) for n in near])
+    ti = np.fromiter((t for n in near for t in n), dtype=np.int64, count=len(ei))
+    share = (tri[ti] == edges[ei, :1]).any(axis=1) | (tri[ti] == edges[ei, 1:]).any(axis=1)
+    ei, ti = ei[~share], ti[~share]
+    a, b, c = (points[tri[ti, k]] for k in range(3))
+    n = np.cross(b - a, c - a)
+    dp = np.einsum("ij,ij->i", p[ei] - a, n)
+    dq = np.einsum("ij,ij->i", q[ei] - a, n)
+    scale = np.linalg.norm(n, axis=1) * np.linalg.norm(q[ei] - p[ei], axis=1)
+    # strictly on both sides (a shared plane or an end on the triangle is not a crossing)
+    crosses = (dp * dq < 0) & (np.minimum(np.abs(dp), np.abs(dq)) > 1e-9 * scale)
+    t = np.where(crosses, dp / np.where(crosses, dp - dq, 1.0), 0.0)
+    y = p[ei] + t[:, None] * (q[ei] - p[ei])
+    inside = crosses.copy()
+    for u, v in ((a, b), (b, c), (c, a)):
+        inside &= np.einsum("ij,ij->i", np.cross(v - u, y - u), n) > 0
+    if inside.any():
+        k = np.flatnonzero(inside)
+        raise ValueError(f"{where}: the leaflet surface passes through itself: {len(k)} edge(s) "
+                         "cross a triangle they share no node with (folded or inverted "
+                         "triangles, or leaflets through each other), e.g. at "
+                         f"{_at(y[k[0]])}")
 
 
 def _check_cells(points, tri, where: str, diag: float) -> None:

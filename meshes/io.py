@@ -14,8 +14,8 @@ from io import StringIO
 
 import numpy as np
 
-__all__ = ["RawSurface", "read_surface", "write_surface", "to_dolfinx", "mesh_from_arrays",
-           "read_points"]
+__all__ = ["RawSurface", "read_surface", "write_surface", "write_raw_surface", "to_dolfinx",
+           "mesh_from_arrays", "read_points"]
 
 # gmsh/VTK node order of a 6-node triangle (v0 v1 v2 m01 m12 m20) -> dolfinx's
 # (v0 v1 v2, then the midpoint of the edge opposite v0, v1, v2: m12 m20 m01)
@@ -171,6 +171,31 @@ def write_surface(path: str | os.PathLike, points: np.ndarray, triangles: np.nda
         cell_data={k: [np.asarray(v)] for k, v in (cell_data or {}).items()},
     )
     meshio.write(os.fspath(path), mesh)
+
+
+def write_raw_surface(path: str | os.PathLike, raw: RawSurface) -> None:
+    """Write a :class:`RawSurface` (triangles and line cells with their data, point data) with
+    meshio: what :func:`read_surface` reads back. Data given only on triangles or only on lines
+    is filled with -1 on the other block. Call it on one rank."""
+    import meshio
+
+    tri = np.asarray(raw.triangles, dtype=np.int64).reshape(-1, 3)
+    lines = np.asarray(raw.lines, dtype=np.int64).reshape(-1, 2)
+    cells = [("triangle", tri)] + ([("line", lines)] if len(lines) else [])
+    names = list(dict.fromkeys([*raw.cell_data, *raw.line_data]))
+    data = {}
+    for name in names:
+        t = raw.cell_data.get(name)
+        ln = raw.line_data.get(name)
+        like = t if t is not None else ln
+        dtype = np.asarray(like).dtype
+        data[name] = [np.asarray(t) if t is not None else np.full(len(tri), -1, dtype)]
+        if len(lines):
+            data[name].append(np.asarray(ln) if ln is not None
+                             else np.full(len(lines), -1, dtype))
+    meshio.write(os.fspath(path), meshio.Mesh(
+        np.asarray(raw.points, dtype=np.float64), cells,
+        point_data={k: np.asarray(v) for k, v in raw.point_data.items()}, cell_data=data))
 
 
 def to_dolfinx(comm, raw: RawSurface | None, cell_values: np.ndarray | None = None):

@@ -146,6 +146,39 @@ class ValveMesh(SurfaceMesh):
         off = (x - centre + 0.5 * total) % total - 0.5 * total
         return 0.5 + (off if fwd else -off) / span
 
+    def annulus_nodes(self) -> np.ndarray:
+        """(n, 3) reference coordinates of the annulus nodes, every rank's, in order along
+        ``annulus_curve`` (from the anterior midpoint, counter-clockwise about the axis seen
+        from the atrium): e.g. to write a target loop for ``[annulus] target``. Collective."""
+        from scipy.spatial import cKDTree
+
+        from dolfinx import cpp
+
+        msh = self.mesh
+        geo = cpp.mesh.entities_to_geometry(_cpp_mesh(msh), 1, self.facets("annulus"), False)
+        parts = msh.comm.allgather(msh.geometry.x[np.unique(geo.ravel())])
+        pts = np.concatenate(parts)
+        scale = 1e-9 * (1.0 + float(np.abs(pts).max(initial=0.0)))
+        _, first = np.unique(np.round(pts / scale).astype(np.int64), axis=0, return_index=True)
+        pts = pts[np.sort(first)]
+        curve = np.asarray(self.annulus_curve, dtype=float)
+        idx = cKDTree(curve).query(pts)[1]
+        return pts[np.argsort(idx, kind="stable")]
+
+    def free_edge_nodes(self, leaflet: str) -> np.ndarray:
+        """(n, 3) reference coordinates of a leaflet's free-edge nodes, every rank's, in order
+        of their position along the leaflet (:meth:`along_leaflet`). Collective."""
+        from dolfinx import cpp
+
+        msh = self.mesh
+        geo = cpp.mesh.entities_to_geometry(_cpp_mesh(msh), 1,
+                                            self.facets(f"free_edge_{leaflet}"), False)
+        pts = np.concatenate(msh.comm.allgather(msh.geometry.x[np.unique(geo.ravel())]))
+        scale = 1e-9 * (1.0 + float(np.abs(pts).max(initial=0.0)))
+        _, first = np.unique(np.round(pts / scale).astype(np.int64), axis=0, return_index=True)
+        pts = pts[np.sort(first)]
+        return pts[np.argsort(self.along_leaflet(pts, leaflet), kind="stable")]
+
     def insertions(self, family: str | None = None, leaflet: str | None = None) -> np.ndarray:
         """Indices (into ``insertion_points``) of one family and/or one leaflet."""
         keep = np.ones(len(self.insertion_points), dtype=bool)

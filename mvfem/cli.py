@@ -249,6 +249,48 @@ def _cmd_study(args) -> int:
     return 0
 
 
+def _cmd_repair_compare(args) -> int:
+    from pathlib import Path
+
+    from mvfem.compare import compare, table_text
+    from mvfem.scene import parse_set_option
+    from mvfem.units import PRESSURE, parse_quantity
+
+    diastolic = None
+    if not args.no_diastole:
+        try:
+            diastolic = parse_quantity(args.diastolic, PRESSURE, "Pa")
+        except ValueError as e:
+            raise InputError(f"--diastolic: {e}") from None
+    changes = dict(parse_set_option(t) for t in (args.set or []))
+    out = Path(args.out) if args.out else Path("results") / f"{Path(args.scene).stem}-repairs"
+    res = compare(args.scene, args.repairs, out, processes=args.processes, diastolic=diastolic,
+                  changes=changes, progress=True)
+    _say(table_text(res["rows"]))
+    _say(f"wrote {', '.join(str(p) for p in res['files'])}")
+    return 0
+
+
+def _cmd_bench(args) -> int:
+    import dolfinx  # noqa: F401  (PETSc initialisation is collective: before anything else)
+
+    from mvfem.bench import run_bench
+
+    problems = None
+    if args.problems:
+        problems = tuple(p.strip() for p in args.problems.split(",") if p.strip())
+        known = ("foppl", "neo-hookean", "valve")
+        bad = [p for p in problems if p not in known]
+        if bad:
+            raise InputError(f"--problems: unknown problem {bad[0]!r} (known: {', '.join(known)})")
+    res = run_bench(args.out, quick=args.quick, problems=problems, say=_say)
+    _say("")
+    _say(res["table"])
+    _say(f"\nbench: {len(res['rows'])} rows in {res['time_s']:.1f} s; wrote "
+         + ", ".join(str(f) for f in res["files"]))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of `mvfem` (exposed for documentation and tests)."""
     p = _Parser(prog="mvfem", description="Mitral valve closure with hyperelastic membranes.")
@@ -299,14 +341,52 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run again the runs recorded as failed")
     st.set_defaults(func=_cmd_study)
 
+    rc = sub.add_parser("repair-compare", help="the unrepaired valve and each repair: "
+                        "comparison.csv, comparison.png, shapes.png")
+    rc.add_argument("scene", help="the pathological valve's scene file (TOML)")
+    rc.add_argument("--repairs", nargs="+", required=True, metavar="REPAIR.toml",
+                    help="repair files: scene keys merged into the scene (README, Repairs)")
+    rc.add_argument("--out", help="comparison directory (default: results/<scene>-repairs)")
+    rc.add_argument("--processes", type=int, help="runs at a time (default: 1)")
+    rc.add_argument("--diastolic", default="-500 Pa",
+                    help="atrial-side pressure of the diastolic runs (default '-500 Pa')")
+    rc.add_argument("--no-diastole", action="store_true", help="systolic runs only")
+    rc.add_argument("--set", action="append", metavar="KEY.PATH=VALUE",
+                    help="change a scene value in every case, e.g. --set mesh.size=4.0")
+    rc.set_defaults(func=_cmd_repair_compare)
+    be = sub.add_parser("bench", help="speed against error on reference problems: bench.csv, "
+                        "bench_pareto.png, bench.md")
+    be.add_argument("--quick", action="store_true", help="the small sweep (about a minute)")
+    be.add_argument("--out", default="results/bench", help="output directory (default "
+                    "results/bench)")
+    be.add_argument("--problems", help="comma-separated subset of foppl, neo-hookean, valve")
+    be.set_defaults(func=_cmd_bench)
+
     m = sub.add_parser("materials", help="list parameter sets with law, values, thickness, source")
     m.add_argument("--leaflet", choices=("anterior", "posterior"))
     m.set_defaults(func=_cmd_materials)
     return p
 
 
+def _import_gmsh_before_mpi() -> None:
+    """Import gmsh before MPI starts. gmsh's module runs ``ldconfig -p`` in a child process
+    (ctypes.util.find_library) when imported; under an OpenMPI singleton (no mpirun) that
+    child's exit, after MPI_Init, made `mvfem run` exit with code 1 and no message about one
+    time in two (seen in the hard cases, issue 7: strace shows exit_group(1) right after the
+    ldconfig child's SIGCHLD)."""
+    import sys
+
+    if "mpi4py.MPI" in sys.modules:
+        return
+    import importlib.util
+
+    if importlib.util.find_spec("gmsh") is not None:  # no gmsh: nothing to race with
+        import gmsh  # noqa: F401
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run `mvfem` with ``argv`` (default: sys.argv[1:]); returns the exit code."""
+    _import_gmsh_before_mpi()
     try:
         args = build_parser().parse_args(argv)
         _setup_logging(args.verbose)

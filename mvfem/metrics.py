@@ -34,7 +34,7 @@ from mvfem.contact import segment_distance
 from mvfem.nodal import lumped_area
 
 __all__ = ["valve_metrics", "coapting_nodes", "orifice_area", "leak_gap_area",
-           "segment_distance", "COAPT_SLACK", "PIXEL", "SECTION_STEP"]
+           "segment_distance", "COAPT_SLACK", "PIXEL", "SECTION_STEP", "ORIFICE_MIN_AREA"]
 
 #: a pair coapts when its gap is below this multiple of the contact thickness
 COAPT_SLACK = 1.5
@@ -42,6 +42,9 @@ COAPT_SLACK = 1.5
 PIXEL = 0.05
 #: spacing of the sections of the leak gap area (mm)
 SECTION_STEP = 0.25
+#: an open piece of the projected annulus smaller than this (mm^2) is not counted as an
+#: orifice of its own (orifice_count); its area still counts in the totals
+ORIFICE_MIN_AREA = 0.5
 
 
 def _frame(annulus: np.ndarray, axis_hint: np.ndarray):
@@ -112,9 +115,10 @@ def _inside_polygon(ring: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndar
     return out
 
 
-def orifice_area(x, cells, annulus_loop, centre, axis, grow: float) -> float:
+def orifice_area(x, cells, annulus_loop, centre, axis, grow: float, components: bool = False):
     """Area (mm^2) of the projected annulus polygon not covered by the projected triangles
-    grown by ``grow`` mm."""
+    grown by ``grow`` mm; with ``components`` also the areas of its connected pieces (the
+    separate orifices, largest first; 8-connected pixels)."""
     from scipy import ndimage
 
     e1 = np.cross(axis, [1.0, 0.0, 0.0])
@@ -152,7 +156,13 @@ def orifice_area(x, cells, annulus_loop, centre, axis, grow: float) -> float:
     if r > 0:
         yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
         covered = ndimage.binary_dilation(covered, structure=(xx**2 + yy**2) <= r * r)
-    return float(np.sum(inside & ~covered) * PIXEL**2)
+    open_ = inside & ~covered
+    area = float(np.sum(open_) * PIXEL**2)
+    if not components:
+        return area
+    labels, n = ndimage.label(open_, structure=np.ones((3, 3), dtype=bool))
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:] * PIXEL**2
+    return area, sorted((float(a) for a in sizes), reverse=True)
 
 
 def leak_gap_area(x, cells_a, cells_b, origin, axis, along, span, thickness) -> tuple:
@@ -191,6 +201,9 @@ def valve_metrics(model, x: np.ndarray) -> dict:
     view, surface, contact = model.view, model.surface, model.contact
     names = {v: k for k, v in (surface.names or {}).items()}
     ann_loop = np.asarray(getattr(surface, "annulus_curve", np.zeros((0, 3))))
+    moved = getattr(model, "annulus_nodes", None)
+    if moved is not None and len(moved) >= 3:  # a prescribed annulus (ring): where it is now
+        ann_loop = x[moved]
     axis = np.asarray(getattr(surface, "axis", [0.0, 0.0, 1.0]), dtype=float)
     out: dict = {}
     if contact is not None:
@@ -221,13 +234,20 @@ def valve_metrics(model, x: np.ndarray) -> dict:
         out["coaptation_length_per_leaflet_mm"] = lengths
         out["tenting_height_mm"] = (-max(depths)) if depths else None
         grow = 0.5 * contact.thickness if contact is not None else 0.0
-        projected = orifice_area(x, view.cells, ann_loop, centre, n, grow)
+        projected, pieces = orifice_area(x, view.cells, ann_loop, centre, n, grow,
+                                         components=True)
         leak = _leak_between_leaflets(surface, view, x, centre, n, ap, section_normal,
                                       2 * grow, names)
         out["projected_orifice_area_mm2"] = projected
         out["leak_gap_area_mm2"] = leak
         out["regurgitant_orifice_area_mm2"] = max(projected, leak if leak is not None else 0.0)
         out["annulus_area_mm2"] = orifice_area(x, view.cells[:0], ann_loop, centre, n, 0.0)
+        # the separate openings seen along the axis (a clipped valve opens on both sides of
+        # the clip: two orifices); under an atrial-side (diastolic) pressure their total is
+        # the diastolic orifice area
+        out["orifice_count"] = int(sum(a >= ORIFICE_MIN_AREA for a in pieces))
+        out["orifice_areas_mm2"] = [a for a in pieces if a >= ORIFICE_MIN_AREA]
+        out["diastolic_orifice_area_mm2"] = projected if model.p_target < 0 else None
     if model.chordae is not None and len(model.chordae):
         ch = model.chordae
         f = ch.force_N(x)
@@ -240,6 +260,8 @@ def valve_metrics(model, x: np.ndarray) -> dict:
         out["chordae_force_N"] = block
     else:
         out["chordae_force_N"] = None
+    ties = getattr(model, "ties", None)
+    out["ties"] = ties.summary(x) if ties is not None and len(ties) else None
     out["_coapting"] = flags
     return out
 

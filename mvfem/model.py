@@ -87,6 +87,17 @@ class Model:
     #: potential; point terms add theirs), whose derivative is ``residual`` where the
     #: boundary is held: the solver's merit function (mvfem.solver.PseudoTransient)
     potential: ufl.core.expr.Expr | None = None
+    ties: object = None          # mvfem.ties.Ties (clips, sutures)
+    #: prescribed motion (annulus target, ring, papillary target, ties drawn tight):
+    #: ``ramp(f)`` sets it to the fraction f in [0, 1]; None when the scene has none
+    ramp: object = None
+    ramp_steps: int = 0
+    #: ``lift()``: move ``u`` onto the current Dirichlet values of the prescribed loop, the
+    #: interior by the harmonic extension of the change (a start for the next solve)
+    lift: object = None
+    #: rank 0: global node indices of a prescribed (moving) annulus, in order along it
+    annulus_nodes: object = None
+    motion: dict = field(default_factory=dict)  # what is prescribed (summary.json "motion")
 
     @property
     def comm(self):
@@ -131,7 +142,7 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
     if gen == "octasphere":
         return meshes.octasphere(comm, radius=m["radius"], refinements=m["refinements"])
     if gen == "valve":
-        return _valve(scene, comm, size)
+        return _resected(scene, _valve(scene, comm, size), comm)
     if gen == "file":
         try:
             raw = meshes.read_surface(m["file"])
@@ -141,15 +152,77 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
             from mvfem.meshes.imported import valve_from_surface
 
             try:
-                return valve_from_surface(comm, raw, m["labels"], source=m["file"])
+                surface = valve_from_surface(comm, raw, m["labels"], source=m["file"])
             except ValueError as e:
                 raise InputError(f"{scene.source}: mesh.file: {e}") from None
+            return _resected(scene, surface, comm)
         values = raw.cell_data.get("leaflet")
         msh, tags = meshes.to_dolfinx(comm, raw, values)
         names = {v: int(k) for k, v in (m["labels"] or {}).items()}
         return meshes.SurfaceMesh(mesh=msh, cell_tags=tags, facet_tags=None, names=names,
                                   info={"generator": "file", "file": m["file"]})
     raise InputError(f"{scene.source}: mesh.generator: {gen!r} is not available")
+
+
+def _resected(scene: Scene, surface, comm):
+    """The valve with the scene's ``[repair.resection]`` applied (its suture pairs, reference
+    coordinates on rank 0, in ``surface.sutures``)."""
+    spec = scene["repair"]["resection"]
+    if spec is None:
+        return surface
+    from mvfem.repairs import resect
+
+    # the radial direction of the tissue left is the one it had before the cut: the Laplace
+    # coordinate of the whole valve, not one re-solved with the cut made a free edge (phi = 1
+    # along the cut: cells with three nodes on it have no gradient, and 0/0 = NaN radial
+    # directions; the bottom of a quadrangular cut would also turn radial into circumferential)
+    phi = _laplace_phi(surface, scene.source)
+    valve, sutures, _ = resect(surface, spec, comm, scene.source, 0.0)
+    valve.sutures = sutures if spec["sutures"] else np.zeros((0, 2, 3))
+    if phi is not None:
+        valve.radial_coordinate = _gather_nodal(phi)
+    return valve
+
+
+def _laplace_phi(surface, source: str):
+    """The Laplace coordinate of a valve surface (0 annulus, 1 free edge), or None."""
+    annulus = _annulus_facets(surface)
+    if annulus is None:
+        return None
+    from mvfem.meshes.fibres import boundary_split, laplace_coordinate
+
+    msh = surface.mesh
+    vertices = dmesh.compute_incident_entities(msh, annulus, msh.topology.dim - 1, 0)
+    ann, free_edge = boundary_split(msh, vertices)
+    try:
+        return laplace_coordinate(msh, ann, free_edge)
+    except ValueError as e:
+        raise InputError(f"{source}: mesh: {e}") from None
+
+
+def _gather_nodal(f) -> tuple[np.ndarray, np.ndarray]:
+    """(coordinates, values) of a scalar P1 function's owned dofs, gathered on every rank."""
+    V = f.function_space
+    n = V.dofmap.index_map.size_local
+    comm = V.mesh.comm
+    x = np.concatenate(comm.allgather(V.tabulate_dof_coordinates()[:n]))
+    v = np.concatenate(comm.allgather(f.x.array[:n].copy()))
+    return x, v
+
+
+def _nodal_function(msh, points: np.ndarray, values: np.ndarray, name: str):
+    """The P1 function on ``msh`` taking ``values`` at ``points`` (every node of ``msh`` is
+    one of ``points``: a resected valve keeps the coordinates of its nodes)."""
+    from scipy.spatial import cKDTree
+
+    V = fem.FunctionSpace(msh, ("Lagrange", 1))
+    x = V.tabulate_dof_coordinates()
+    dist, idx = cKDTree(points).query(x)
+    if len(dist) and dist.max() > 1e-9 * (1.0 + np.abs(points).max()):
+        raise RuntimeError(f"{name}: a node of the mesh is not one of the given points")
+    f = fem.Function(V, name=name)
+    f.x.array[:] = values[idx]
+    return f
 
 
 def _valve(scene: Scene, comm, size: float):
@@ -249,16 +322,11 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
     v = ufl.TestFunction(V)
 
     annulus = _annulus_facets(surface)
-    phi = None
-    if annulus is not None:
-        from mvfem.meshes.fibres import boundary_split, laplace_coordinate
-
-        vertices = dmesh.compute_incident_entities(msh, annulus, msh.topology.dim - 1, 0)
-        ann, free_edge = boundary_split(msh, vertices)
-        try:
-            phi = laplace_coordinate(msh, ann, free_edge)
-        except ValueError as e:
-            raise InputError(f"{scene.source}: mesh: {e}") from None
+    given = getattr(surface, "radial_coordinate", None)  # a resected valve's, from before
+    if given is not None and annulus is not None:
+        phi = _nodal_function(msh, *given, name="radial_coordinate")
+    else:
+        phi = _laplace_phi(surface, scene.source)
     fibre, radial, circ = _directions(msh, scene["fibres"], phi)
     kin = membrane(u, fibre)
     meta = {"quadrature_degree": q}
@@ -303,6 +371,7 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
     residual = internal - p_term
 
     bcs = []
+    loop_motion = None  # (Function g, its full values, info) of a prescribed clamped loop
     if scene["boundary"]["clamp"] == "boundary":
         msh.topology.create_connectivity(1, 2)
         facets = dmesh.exterior_facet_indices(msh.topology)
@@ -311,7 +380,8 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
             raise InputError(f"{scene.source}: boundary.clamp: the mesh has no boundary to clamp "
                              "(use clamp = \"none\")")
         dofs = fem.locate_dofs_topological(V, 1, facets)
-        bcs.append(fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), dofs, V))
+        loop_motion = _loop_motion(scene, surface, V, dofs)
+        bcs.append(_clamp(V, dofs, loop_motion))
     elif scene["boundary"]["clamp"] == "rigid":
         bcs += _rigid_pins(V, scene)
     elif scene["boundary"]["clamp"] == "annulus":
@@ -319,7 +389,11 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
             raise InputError(f"{scene.source}: boundary.clamp: \"annulus\" needs a valve mesh "
                              "(generator = \"valve\", or a file with point data 'annulus')")
         dofs = fem.locate_dofs_topological(V, 1, annulus)
-        bcs.append(fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), dofs, V))
+        loop_motion = _loop_motion(scene, surface, V, dofs)
+        bcs.append(_clamp(V, dofs, loop_motion))
+    if scene["repair"]["ring"] is not None and scene["boundary"]["clamp"] != "annulus":
+        raise InputError(f"{scene.source}: repair.ring: needs the annulus clamped "
+                         "(boundary.clamp = \"annulus\", the default of valves)")
 
     p_target = float(load["pressure"])
     stab_scale = s["stabilisation"] * max(abs(p_target), 1.0) / L
@@ -330,7 +404,172 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
                   quadrature_degree=q, length_scale=L, info={"area_mm2": area}, phi=phi,
                   potential=energy + p_pot)
     _point_terms(model)
+    _compose_ramp(model, loop_motion)
     return model
+
+
+def _loop_frame(surface, scene: Scene) -> np.ndarray:
+    """Rows: anterior, commissural, axis directions (a valve's frame; else x, y about the
+    scene's fibres.axis)."""
+    frame = getattr(surface, "frame", None)
+    if frame is not None:
+        return np.asarray(frame, dtype=float)
+    z = np.asarray(scene["fibres"]["axis"], dtype=float)
+    z = z / np.linalg.norm(z)
+    x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    return np.array([x, np.cross(z, x), z])
+
+
+def _loop_motion(scene: Scene, surface, V, dofs):
+    """The clamped loop's prescribed displacement (``[annulus] target`` or ``[repair.ring]``):
+    (Function holding it at the clamped dofs, those full values, info), or None."""
+    from scipy.spatial import cKDTree
+
+    from mvfem.prescribed import match_loop, order_loop
+    from mvfem.repairs import on_root, ring_targets
+
+    ring, target = scene["repair"]["ring"], scene["annulus"]["target"]
+    if ring is None and target is None:
+        return None
+    comm = V.mesh.comm
+    coords = V.tabulate_dof_coordinates()
+    n_owned = V.dofmap.index_map.size_local
+    parts = comm.gather(coords[dofs[dofs < n_owned]], root=0)
+    frame = _loop_frame(surface, scene)
+    key = "repair.ring" if ring is not None else "annulus.target"
+
+    def work():
+        from mvfem.meshes.io import read_points
+
+        pts = np.concatenate(parts)
+        loop = pts[order_loop(pts, frame, getattr(surface, "annulus_curve", None))]
+        if ring is not None:
+            if getattr(surface, "commissures", None) is None or \
+                    not hasattr(surface, "along_leaflet"):
+                raise InputError(f"{scene.source}: repair.ring: needs a valve mesh")
+            placed, info = ring_targets(loop, frame, surface.commissures, ring["shape"],
+                                        ring["size"], ring["ap_ratio"], ring["saddle_height"],
+                                        where=f"{scene.source}: repair.ring")
+            info = {"kind": "ring", **info}
+        else:
+            placed = match_loop(loop, read_points(target), frame, scene["annulus"]["match"])
+            info = {"kind": "annulus target", "file": target, "nodes": int(len(loop)),
+                    "max_displacement_mm":
+                        float(np.linalg.norm(placed - loop, axis=1).max())}
+        return loop, placed - loop, info
+
+    loop, disp, info = comm.bcast(on_root(comm, work, f"{scene.source}: {key}"), root=0)
+    g = fem.Function(V, name="prescribed")
+    dist, idx = cKDTree(loop).query(coords[dofs])
+    if len(dist) and dist.max() > 1e-9 * (1.0 + np.abs(loop).max()):
+        raise RuntimeError("a clamped dof is not on the gathered loop")
+    values = g.x.array.reshape(-1, 3)
+    values[dofs] = disp[idx]
+    full = g.x.array.copy()
+    g.x.array[:] = 0.0
+    return g, full, info, dofs, loop
+
+
+class _Lifting:
+    r"""Harmonic extension of a change of the clamped values into the interior.
+
+    ``lift()`` sets ``u += w`` with ``w`` the P1 solution of the surface Laplace problem
+    :math:`\int \nabla w : \nabla v = 0`, ``w = g - u`` on the clamped dofs. On a flat
+    surface an affine motion of the rim (a translation, rotation, uniform stretch) extends to
+    the affine field itself, the exact homogeneous state; on a curved valve it is a smooth
+    start. It keeps the first Newton step from meeting a membrane whose rim alone has moved
+    (the Fung laws have no stiffness at the stress-free state: the load steps stalled)."""
+
+    def __init__(self, V, dofs, g, u):
+        from dolfinx.fem import petsc as fpetsc
+
+        w, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+        self.a = fem.form(ufl.inner(ufl.grad(w), ufl.grad(v)) * ufl.dx)
+        zero = ufl.inner(fem.Constant(V.mesh, np.zeros(3, dtype=PETSc.ScalarType)), v) * ufl.dx
+        self.L = fem.form(zero)
+        self.m = fem.Function(V)
+        self.bc = fem.dirichletbc(self.m, dofs)
+        self.A = fpetsc.assemble_matrix(self.a, bcs=[self.bc])
+        self.A.assemble()
+        self.ksp = PETSc.KSP().create(V.mesh.comm)
+        self.ksp.setOperators(self.A)
+        self.ksp.setType("preonly")
+        self.ksp.getPC().setType("lu")
+        self.ksp.getPC().setFactorSolverType("mumps")
+        self.g, self.u, self.w = g, u, fem.Function(V)
+        self.b = fpetsc.create_vector(self.L)
+        #: ``limit(u_owned, w_owned)`` -> the fraction of ``w`` allowed (contact's CCD bound)
+        self.limit = None
+
+    def __call__(self) -> None:
+        from dolfinx.fem import petsc as fpetsc
+
+        self.m.x.array[:] = self.g.x.array - self.u.x.array
+        with self.b.localForm() as bl:
+            bl.set(0.0)
+        fpetsc.assemble_vector(self.b, self.L)
+        fpetsc.apply_lifting(self.b, [self.a], bcs=[[self.bc]])
+        self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        fpetsc.set_bc(self.b, [self.bc])
+        self.ksp.solve(self.b, self.w.vector)
+        self.w.x.scatter_forward()
+        alpha = 1.0
+        if self.limit is not None:  # no leaflet moved through another by the lifting
+            n = self.u.function_space.dofmap.index_map.size_local * 3
+            alpha = self.limit(self.u.x.array[:n], self.w.x.array[:n])
+        self.u.x.array[:] += alpha * self.w.x.array
+        self.u.x.scatter_forward()
+
+
+def _clamp(V, dofs, loop_motion):
+    if loop_motion is None:
+        return fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), dofs, V)
+    return fem.dirichletbc(loop_motion[0], dofs)
+
+
+def _compose_ramp(model: Model, loop_motion) -> None:
+    """``model.ramp(f)``: the prescribed motion at fraction f (clamped loop, papillary tips,
+    ties drawn tight), when the scene prescribes any."""
+    parts = []
+    if loop_motion is not None:
+        g, full, info, dofs, loop = loop_motion
+        model.motion["annulus"] = info
+        model.lift = _Lifting(model.V, dofs, g, model.u)
+        if model.point_terms is not None:
+            model.lift.limit = model.point_terms.step_limit
+        if model.view is not None and model.comm.rank == 0:  # the moved annulus, for metrics
+            model.annulus_nodes = model.view.node_of_point(loop)
+
+        def move_loop(f, g=g, full=full):
+            g.x.array[:] = f * full
+        parts.append(move_loop)
+    ch = model.chordae
+    shift = getattr(ch, "anchor_shift", None) if ch is not None else None
+    if shift is not None:
+        start = ch.anchor.copy()
+        model.motion["papillary"] = getattr(ch, "motion_info", {})
+
+        def move_tips(f, ch=ch, start=start, shift=shift):
+            ch.anchor[:] = start + f * shift
+        parts.append(move_tips)
+    if model.ties is not None:
+        model.motion["ties"] = {"count": model.comm.allreduce(len(model.ties), op=MPI.SUM)}
+        parts.append(model.ties.set_fraction)
+    if not parts:
+        return
+    pt = model.point_terms
+
+    def ramp(f: float) -> None:
+        for p in parts:
+            p(f)
+        if pt is not None:  # the point terms' cache is keyed on positions only
+            pt._last_x = None
+    model.ramp = ramp
+    model.ramp_steps = int(model.scene["solver"]["ramp_steps"])
+    if model.ties is not None:
+        model.ties.set_fraction(0.0)
 
 
 def _annulus_facets(surface):
@@ -352,9 +591,15 @@ def _point_terms(model: Model) -> None:
 
     scene, surface = model.scene, model.surface
     valve = _annulus_facets(surface) is not None
-    want_chordae = scene["chordae"]["enabled"] and _has_chordae(surface)
+    rep = scene["repair"]
+    want_chordae = (scene["chordae"]["enabled"] and _has_chordae(surface)) or bool(rep["neochord"])
     want_contact = scene["contact"]["enabled"] and valve
-    if not (want_chordae or want_contact):
+    want_ties = surface_has_sutures(surface, model.comm) or bool(rep["clip"])  # collective
+    if (rep["neochord"] or rep["clip"]) and not valve:
+        raise InputError(f"{scene.source}: repair: neochordae and clips need a valve mesh")
+    if scene["papillary"]["target"] is not None and not want_chordae:
+        raise InputError(f"{scene.source}: papillary.target: the scene has no chordae to move")
+    if not (want_chordae or want_contact or want_ties):
         return
     try:
         view = NodalView(model.V, model.bcs, surface.cell_tags)
@@ -371,6 +616,9 @@ def _point_terms(model: Model) -> None:
         k = c["stiffness"] or max(abs(model.p_target), 1e3) / delta
         model.contact = Contact(view, delta, k, exclusion=c["exclusion"])
         terms.append(model.contact)
+    if want_ties:
+        model.ties = _ties(scene, surface, view, model.V)
+        terms.append(model.ties)
     model.view = view
     model.point_terms = PointTerms(view, terms)
 
@@ -384,26 +632,38 @@ def _chordae(scene: Scene, surface, view):
     edits (``[[chordae.edit]]``: lengthened, shortened or ruptured chords)."""
     from mvfem.chordae import Chordae
 
+    edges = {n["leaflet"]: _free_edge_points(surface, n["leaflet"], view.comm)
+             for n in scene["repair"]["neochord"]}
     chords, error = None, None
     if view.comm.rank == 0:
         try:
-            chords = _chordae_on_root(scene, surface, view)
+            chords = _chordae_on_root(scene, surface, view, edges)
         except InputError as e:
             error = str(e)
+        except ValueError as e:
+            error = f"{scene.source}: {e}"
     error = view.comm.bcast(error, root=0)
     if error:
         raise InputError(error)
     if view.comm.rank != 0:
-        return Chordae(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0),
-                       np.zeros(0, dtype="<U8"))
+        chords = Chordae(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0),
+                         np.zeros(0, dtype="<U8"))
+        if scene["papillary"]["target"] is not None:
+            chords.anchor_shift = np.zeros((0, 3))
     return chords
 
 
-def _chordae_on_root(scene: Scene, surface, view):
+def _chordae_on_root(scene: Scene, surface, view, edges=None):
     from mvfem.chordae import Chordae
 
     fams = scene["chordae"]
     names = {v: k for k, v in (surface.names or {}).items()}
+    if not scene["chordae"]["enabled"] or not _has_chordae(surface):  # neochordae only
+        surface_tip = np.zeros(0, dtype=np.int64)
+        node, anchor = np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        chords = Chordae(node, anchor, np.zeros(0), np.zeros(0), np.zeros(0, dtype="<U8"),
+                         np.zeros(0, dtype="<U16"))
+        return _with_repairs(scene, surface, view, chords, surface_tip, edges or {})
     node = view.node_of_point(surface.insertion_points)
     anchor = surface.papillary_tips[surface.insertion_tip]
     # imported trees: path length along the tree; generated valves: the length that makes the
@@ -435,6 +695,11 @@ def _chordae_on_root(scene: Scene, surface, view):
                 on = sel & (leaflet == name)
                 pos[on] = surface.along_leaflet(surface.insertion_points[on], str(name))
             sel &= (pos >= span[0]) & (pos <= span[1])
+        if not sel.any() and scene["repair"]["resection"] is not None:
+            # the resection took out the tissue (and the chords) the edit was about: a
+            # ruptured segment resected is the usual repair
+            log.info(f"chordae.edit[{i}]: selects no chord left after the resection")
+            continue
         if not sel.any():
             raise InputError(f"{scene.source}: chordae.edit[{i}]: selects no chord of this valve "
                              f"(leaflets: {', '.join(sorted(set(leaflet)))}; families: "
@@ -443,8 +708,143 @@ def _chordae_on_root(scene: Scene, surface, view):
             keep &= ~sel
         else:
             rest[sel] *= e["length_factor"]
-    return Chordae(node[keep], anchor[keep], rest[keep], EA[keep] / rest[keep], family[keep],
-                   leaflet[keep])
+    chords = Chordae(node[keep], anchor[keep], rest[keep], EA[keep] / rest[keep], family[keep],
+                     leaflet[keep])
+    return _with_repairs(scene, surface, view, chords,
+                         np.asarray(surface.insertion_tip)[keep], edges or {})
+
+
+def _free_edge_points(surface, leaflet: str, comm) -> np.ndarray | None:
+    """Reference coordinates of the vertices of a leaflet's free edge, gathered on rank 0
+    (collective; None elsewhere)."""
+    from dolfinx import cpp
+
+    from mvfem.meshes.io import _cpp_mesh
+
+    msh = surface.mesh
+    name = f"free_edge_{leaflet}"
+    if name not in (surface.names or {}):
+        pts = np.zeros((0, 3))
+    else:
+        facets = surface.facets(name)
+        geo = cpp.mesh.entities_to_geometry(_cpp_mesh(msh), 1, facets, False).ravel()
+        pts = msh.geometry.x[geo]
+    parts = comm.gather(pts, root=0)
+    return np.concatenate(parts) if comm.rank == 0 else None
+
+
+def surface_has_sutures(surface, comm) -> bool:
+    """Whether a resected valve carries sutures (rank 0 holds them; collective)."""
+    return comm.allreduce(len(getattr(surface, "sutures", ())), op=MPI.SUM) > 0
+
+
+def _with_repairs(scene: Scene, surface, view, chords, tip, edges: dict):
+    """The chordae with the scene's neochordae appended, and the anchors' shift to the
+    papillary target (``chords.anchor_shift``, ``chords.tip``) when the scene has one
+    (rank 0)."""
+    from mvfem.chordae import Chordae
+    from mvfem.repairs import free_edge, neochordae
+
+    nodes, tips, rest, EA, leaf = [chords.node], [np.asarray(tip, dtype=np.int64)], \
+        [chords.rest_length], [chords.stiffness * chords.rest_length], [chords.leaflet]
+    fam = [chords.family.astype("<U8")]
+    tip_xyz = np.asarray(getattr(surface, "papillary_tips", np.zeros((0, 3))), dtype=float)
+    muscle = np.asarray(getattr(surface, "papillary_muscle", np.zeros(0, dtype=np.int32)))
+    for i, n in enumerate(scene["repair"]["neochord"]):
+        where = f"{scene.source}: repair.neochord[{i}]"
+        if len(tip_xyz) == 0:
+            raise InputError(f"{where}: this valve has no papillary tips to anchor it")
+        edge = free_edge(view, surface, n["leaflet"], edges[n["leaflet"]])
+        if len(edge["node"]) == 0:
+            raise InputError(f"{where}.leaflet: the {n['leaflet']} leaflet has no free edge")
+        nd, tp, L = neochordae(edge, n, tip_xyz, muscle, surface.frame, surface.centre, where)
+        E = n["modulus"] or scene["chordae"]["marginal"]["modulus"]
+        A = n["area"] or scene["chordae"]["marginal"]["area"]
+        nodes.append(nd)
+        tips.append(tp)
+        rest.append(L)
+        EA.append(np.full(len(nd), E * A))
+        fam.append(np.full(len(nd), "neochord", dtype="<U8"))
+        leaf.append(np.full(len(nd), n["leaflet"], dtype="<U16"))
+    tip_all = np.concatenate(tips).astype(np.int64)
+    rest_all = np.concatenate(rest)
+    out = Chordae(np.concatenate(nodes).astype(np.int64),
+                  tip_xyz[tip_all].reshape(-1, 3) if len(tip_all) else np.zeros((0, 3)),
+                  rest_all, np.concatenate(EA) / rest_all, np.concatenate(fam),
+                  np.concatenate(leaf).astype("<U16"))
+    out.tip = tip_all
+    target = scene["papillary"]["target"]
+    if target is not None:
+        from mvfem.meshes.io import read_points
+
+        to = read_points(target)
+        if to.shape != tip_xyz.shape:
+            raise InputError(f"{scene.source}: papillary.target: {target}: {len(to)} point(s) "
+                             f"for the valve's {len(tip_xyz)} papillary tip(s) (one row per "
+                             "tip, in the valve's order: anterolateral first)")
+        shift = to - tip_xyz
+        out.anchor_shift = shift[tip_all].reshape(-1, 3)
+        out.motion_info = {"file": target, "tips": int(len(tip_xyz)),
+                           "max_displacement_mm": float(np.linalg.norm(shift, axis=1).max())}
+    return out
+
+
+def _ties(scene: Scene, surface, view, V):
+    """Clips and sutures as :class:`mvfem.ties.Ties` (rank 0; empty elsewhere)."""
+    from mvfem.repairs import clip_pairs, free_edge, gap_default, snap_to_free_edge
+    from mvfem.ties import Ties
+
+    comm = view.comm
+    clips = scene["repair"]["clip"]
+    edges = {}
+    if clips:
+        edges = {leaf: _free_edge_points(surface, leaf, comm) for leaf in ("anterior",
+                                                                            "posterior")}
+    sutures = getattr(surface, "sutures", np.zeros((0, 2, 3)))
+    res = scene["repair"]["resection"]
+
+    def work():
+        pairs, rest, k, kind, group = [], [], [], [], []
+        gap0 = gap_default(scene)
+        names = surface.names or {}
+        own = {leaf: np.unique(view.cells[view.cell_tag == names.get(leaf, -1)])
+               for leaf in ("anterior", "posterior")}
+        for i, c in enumerate(clips):
+            where = f"{scene.source}: repair.clip[{i}]"
+            ant = free_edge(view, surface, "anterior", edges["anterior"])
+            post = free_edge(view, surface, "posterior", edges["posterior"])
+            pts = c["points"] or (None, None)
+            ia = snap_to_free_edge(ant, at=c["anterior"], point=pts[0], tolerance=c["tolerance"],
+                                   where=f"{where}.{'points' if pts[0] else 'anterior'}")
+            ip = snap_to_free_edge(post, at=c["posterior"], point=pts[1],
+                                   tolerance=c["tolerance"],
+                                   where=f"{where}.{'points' if pts[1] else 'posterior'}")
+            p = clip_pairs(ant, post, ia, ip, c["width"], c["depth"], view.X, own)
+            pairs.append(p)
+            rest.append(np.full(len(p), gap0 if c["gap"] is None else c["gap"]))
+            k.append(np.full(len(p), c["stiffness"]))
+            kind.append(np.full(len(p), "clip", dtype="<U8"))
+            group.append(np.full(len(p), i))
+        if len(sutures):
+            p = view.node_of_point(np.asarray(sutures).reshape(-1, 3)).reshape(-1, 2)
+            pairs.append(p)
+            gap = gap0 if res is None or res["gap"] is None else res["gap"]
+            rest.append(np.full(len(p), gap))
+            k.append(np.full(len(p), res["stiffness"] if res else 5e6))
+            kind.append(np.full(len(p), "suture", dtype="<U8"))
+            group.append(np.full(len(p), len(clips)))
+        pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
+        start = np.linalg.norm(view.X[pairs[:, 0]] - view.X[pairs[:, 1]], axis=1)
+        return Ties(pairs, np.concatenate(rest), np.concatenate(k), np.concatenate(kind),
+                    np.concatenate(group), start_length=start)
+
+    from mvfem.repairs import on_root
+
+    ties = on_root(comm, work, f"{scene.source}: repair")
+    if comm.rank != 0:
+        ties = Ties(np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros(0),
+                    np.zeros(0, dtype="<U8"), np.zeros(0, dtype=np.int64))
+    return ties
 
 
 def _rigid_pins(V, scene: Scene) -> list:

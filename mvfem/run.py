@@ -33,6 +33,9 @@ _ids = itertools.count()
 REMOVAL_ITERATIONS = 4
 #: largest displacement of one pseudo-time update, x the model's length scale (sqrt(area))
 MAX_MOVE = 0.1
+#: pseudo-time steps over which a prescribed motion may be spread, x solver.ramp_steps (it
+#: advances with the accepted steps only; see solve())
+RAMP_SLACK = 5
 #: default solver.max_steps of each method
 MAX_STEPS = {"load-steps": 400, "pseudo-time": 1500}
 
@@ -152,7 +155,7 @@ class _PseudoTimeProgress:
     """A line every couple of seconds of a pseudo-time run on rank 0 (every step with -v)."""
 
     def __init__(self, load_norm: float, enabled: bool):
-        self.f, self.enabled, self.t0 = load_norm, enabled, time.perf_counter()
+        self.f, self.enabled, self.t0 = load_norm or 1.0, enabled, time.perf_counter()
         self.next = 2.0
 
     def __call__(self, rec: PseudoTimeRecord, ptc: PseudoTransient) -> None:
@@ -179,6 +182,83 @@ def _load_norm(model: Model) -> float:
     n = b.norm()
     b.destroy()
     return n
+
+
+#: with no pressure (a prescribed motion the load, or nothing at all), tolerances are relative
+#: to the load of this pressure (Pa) instead: a nominal force scale of the membrane
+NOMINAL_PRESSURE = 1e3
+
+
+def _load_scale(model: Model) -> float:
+    """||f_p|| at the full pressure: the force scale of the tolerances. A scene without
+    pressure (its load a prescribed motion, a ring at zero pressure say, or none: the state
+    stays the reference one) takes the load of :data:`NOMINAL_PRESSURE` instead; a zero
+    scale would make every tolerance zero (never met) and the progress line divide by it."""
+    p = model.pressure.value.copy()
+    model.pressure.value = model.p_target
+    if abs(model.p_target) < 1e-12:
+        model.pressure.value = NOMINAL_PRESSURE
+    try:
+        return _load_norm(model)
+    finally:
+        model.pressure.value = p
+
+
+def _motion_ramp(model: Model):
+    """Load parameter t -> (motion fraction, pressure fraction), or None without a prescribed
+    motion; applies the motion. ``solver.motion = "before-pressure"`` moves everything over
+    the first half of t at zero pressure, then raises the pressure."""
+    if model.ramp is None:
+        return None
+    before = model.scene["solver"]["motion"] == "before-pressure"
+
+    def apply(t: float) -> tuple[float, float]:
+        fm, fp = (min(2 * t, 1.0), max(2 * t - 1, 0.0)) if before else (t, t)
+        model.ramp(fm)
+        return fm, fp
+    return apply
+
+
+class _AdaptiveRamp:
+    """The prescribed motion over the pseudo-time steps, advancing with the accepted ones.
+
+    PseudoTransient calls its ramp before each of its first ``ramp_steps`` steps, refused ones
+    too. The first steps of a valve are refused (wild updates from the slack start), and a ramp
+    counted in them ran ahead of the state: the whole ring motion in one update with the
+    interior frozen by the damping, cells crushed, no admissible step (measured on the dilated
+    valve with a 36 mm ring). Here the motion advances by ``1 / solver.ramp_steps`` after an
+    accepted step (growing 1.5-fold after easy ones, back to that share at most), and after a
+    refused step the increment on top of the last accepted share is halved (a smaller move of
+    the clamped nodes; the exponential laws meet it with a much smaller force). The solver
+    gets ``RAMP_SLACK x ramp_steps`` calls; the last one completes the motion."""
+
+    def __init__(self, model: Model, motion, history):
+        self.model, self.motion, self.history = model, motion, history
+        self.base = 1.0 / max(model.ramp_steps, 1)
+        self.inc = self.base
+        self.accepted_share = 0.0
+        self.trial = 0.0
+        self.seen = 0
+        self.before = model.scene["solver"]["motion"] == "before-pressure"
+
+    def __call__(self, f: float) -> bool:
+        h = self.history()
+        if len(h) > self.seen:  # the outcome of the step taken with the last share
+            if h[-1].accepted:
+                self.accepted_share = self.trial
+                self.inc = min(self.inc * 1.5, self.base)
+            else:
+                self.inc *= 0.5
+            self.seen = len(h)
+        share = 1.0 if f >= 1.0 else min(self.accepted_share + self.inc, 1.0)
+        self.trial = share
+        log.debug(f"    prescribed motion at {share:.4f} (accepted {self.accepted_share:.4f})")
+        _, fp = self.motion(share)
+        m = self.model
+        m.pressure.value = fp * m.p_target if self.before else m.p_target
+        if m.lift is not None:  # the interior follows the rim (the solver's u is the state)
+            m.lift()
+        return share >= 1.0
 
 
 def _max_exponent(model: Model) -> float:
@@ -251,8 +331,18 @@ def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, loa
     ramp = _RAMPS[s["ramp"]]
     last_converged = [u.x.array[:n_owned].copy()]  # the proximal centre
 
+    motion = _motion_ramp(model)
+    t_now = [0.0]
+
     def set_load(t: float) -> None:
-        model.pressure.value = ramp(t) * model.p_target
+        t_now[0] = t
+        if motion is None:
+            model.pressure.value = ramp(t) * model.p_target
+        else:  # prescribed motion with the load parameter (before the pressure: first half)
+            f_motion, f_load = motion(t)
+            model.pressure.value = ramp(f_load) * model.p_target
+            if model.lift is not None:  # the interior follows the rim: a start for Newton
+                model.lift()
 
     def get_state() -> np.ndarray:
         return u.x.array.copy()
@@ -290,7 +380,10 @@ def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, loa
         pace its Newton iterations allow (:class:`Settling`)."""
         its, t_asm, t_sol = 0, 0.0, 0.0
         last_converged[0] = accepted[0].copy()
-        share = abs(float(model.pressure.value)) / max(abs(model.p_target), 1e-300)
+        if model.p_target != 0.0:
+            share = abs(float(model.pressure.value)) / abs(model.p_target)
+        else:  # no pressure: a prescribed motion is the load (its nominal scale, _load_scale)
+            share = t_now[0]
         f_now = load_norm if policy.full_load else share * load_norm
         final = share >= 1 - 1e-12
         budget = policy.final_budget if final else policy.budget
@@ -378,8 +471,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     model = build_model(scene, comm)
     t_build = time.perf_counter() - t_start
     s = scene["solver"]
-    model.pressure.value = model.p_target
-    load_norm = _load_norm(model)
+    load_norm = _load_scale(model)
     model.pressure.value = 0.0
     try:
         problem = SNESProblem(model.residual, model.u, model.bcs, prefix=f"mvfem{next(_ids)}_",
@@ -402,9 +494,14 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     ptc = None
     if method == "pseudo-time":
         model.pressure.value = model.p_target
+        motion = _motion_ramp(model)
+        hook = None
+        if motion is not None:
+            hook = _AdaptiveRamp(model, motion, lambda: ptc.history)
         ptc = PseudoTransient(problem, k0=model.stabiliser_scale, atol=tight_atol,
                               max_steps=max_steps, on_step=_PseudoTimeProgress(load_norm, progress),
-                              max_move=MAX_MOVE * model.length_scale)
+                              max_move=MAX_MOVE * model.length_scale, ramp=hook,
+                              ramp_steps=RAMP_SLACK * model.ramp_steps if hook is not None else 0)
         info = ptc.run()
         final_ok, stop_reason, t_reached = info.converged, ptc.stop_reason, 1.0
         load_steps, newton_its = ptc.accepted_steps, len(ptc.history)
@@ -413,6 +510,8 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
             model, problem, s, max_steps, load_norm, tight_atol, mass, centre, progress)
     problem.set_proximal(0.0)
     r_norm, f_norm = problem.residual_norm(), _load_norm(model)
+    if abs(model.p_target) < 1e-12:
+        f_norm = load_norm  # no pressure: the nominal scale the tolerances used
     rel = r_norm / f_norm if f_norm > 0 else r_norm
     q_max = _max_exponent(model)
     if final_ok and q_max >= MAX_EXPONENT:
@@ -447,6 +546,9 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         "stop_reason": stop_reason,
         "timing": timing,
     }
+    if model.motion:
+        summary["motion"] = {**model.motion, "ramp_steps": model.ramp_steps,
+                             "order": s["motion"]}
     result = Result(summary=summary, u=u, model=model, out=Path(out) if out else None)
     write_outputs(result, problem, write=write and out is not None)
     problem.destroy()

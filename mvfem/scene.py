@@ -174,10 +174,34 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         "method": (_choice("auto", "pseudo-time", "load-steps"), "auto"),
         "stabilisation": (_pos, 0.1),
         "petsc_options": (None, None),  # a table of PETSc options under the problem's prefix
+        # prescribed motion (annulus target, ring, papillary target, ties): spread over the
+        # first ramp_steps pseudo-time steps, or over the load steps' load parameter
+        "ramp_steps": (_int(1), 20),
+        # with-pressure: the motion and the pressure together; before-pressure: the motion
+        # over the first half of the ramp at zero pressure, then the pressure (as a ring is
+        # sewn in on the arrested heart)
+        "motion": (_choice("with-pressure", "before-pressure"), "with-pressure"),
     },
     "output": {
         "probes": (None, []),  # checked in _check_probes
         "xdmf": (_bool, True),
+    },
+    # prescribed motion of the clamped loop (a valve's annulus, a disk's rim) to a target
+    # loop in the mesh's frame, from its open (stress-free) position (mvfem/prescribed.py)
+    "annulus": {
+        "target": (_str, None),   # CSV of an ordered closed loop (x, y, z), mm
+        "match": (_choice("auto", "points", "curve"), "auto"),
+    },
+    # prescribed motion of the papillary tips (the chordae anchors)
+    "papillary": {
+        "target": (_str, None),   # CSV, one row per papillary tip in the valve's order
+    },
+    # repairs as scene edits (mvfem/repairs.py): checked in _check_repair
+    "repair": {
+        "ring": (None, None),
+        "neochord": (None, []),
+        "clip": (None, []),
+        "resection": (None, None),
     },
     # a reference closed surface (any meshio format) to measure the predicted closed state
     # against (mvfem/distance.py); labels name its cell data 'leaflet' (default: mesh.labels,
@@ -198,7 +222,7 @@ _VALVE_KEYS = ("ap_diameter", "commissural_diameter", "saddle_height", "anterior
                "posterior_height", "papillary_depth", "free_edge_size", "chordae_spacing",
                "annulus", "papillary", "anterior_direction")
 _TOP = ("title", "mesh", "region", "fibres", "boundary", "load", "bending", "chordae", "contact",
-        "solver", "output", "reference")
+        "solver", "output", "reference", "annulus", "papillary", "repair")
 #: chordae families and their defaults: rest length = length_factor x open length (or tree
 #: path length); axial stiffness = modulus x area / rest length. The modulus is a modelling
 #: choice of the order reported for human chordae (README); the area is the data README's.
@@ -351,6 +375,168 @@ def _check_chordae(ch: dict) -> None:
     ch["edit"] = out
 
 
+def _tie_stiffness(path, v):
+    """A stiffness in N/mm (a number) or a string with N/mm, Pa mm -> Pa mm (uN/mm)."""
+    try:
+        x = parse_quantity(v, {"n/mm": 1e6, "pa mm": 1.0, "un/mm": 1.0}, "N/mm")
+    except ValueError as e:
+        raise _Bad(path, str(e)) from None
+    if not isinstance(v, str):  # a plain number is in N/mm
+        x *= 1e6
+    if x <= 0:
+        raise _Bad(path, f"must be positive, got {v!r}")
+    return x
+
+
+def _fraction(path, v):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 1.0:
+        raise _Bad(path, f"expected a fraction along the leaflet in [0, 1] (0 posteromedial, "
+                   f"1 anterolateral commissure), got {v!r}")
+    return float(v)
+
+
+def _fractions(path, v):
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return [_fraction(path, v)]
+    if not isinstance(v, list) or not v:
+        raise _Bad(path, f"expected a fraction or a list of fractions, got {v!r}")
+    return [_fraction(f"{path}[{i}]", x) for i, x in enumerate(v)]
+
+
+_LEAFLET = _choice("anterior", "posterior")
+_RING = {
+    "shape": (_choice("full", "d-shaped", "band"), _MISSING),
+    # the ring's intercommissural (transverse) diameter, as the sizers name it (26-40 mm)
+    "size": (_length, _MISSING),
+    "ap_ratio": (_pos, 0.75),          # anteroposterior / transverse
+    "saddle_height": (_quantity(LENGTH, "mm", allow_zero=True), 0.0),
+}
+_NEOCHORD = {
+    "leaflet": (_LEAFLET, _MISSING),
+    "at": (_fractions, None),          # positions along the leaflet of the free-edge nodes
+    "point": (_vector3, None),         # or a point near the free edge (mm)
+    "length": (_length, _MISSING),     # rest length, mm
+    "papillary": (_choice("nearest", "anterolateral", "posteromedial"), "nearest"),
+    "modulus": (_quantity(PRESSURE, "Pa"), None),   # default: the marginal chordae's
+    "area": (_quantity(AREA, "mm2"), None),
+    "tolerance": (_length, 1.5),       # mm from the free edge a point may be
+}
+_CLIP = {
+    "at": (_fraction, None),           # the same position on both free edges
+    "anterior": (_fraction, None),     # or one per leaflet
+    "posterior": (_fraction, None),
+    "points": (None, None),            # or [[anterior x, y, z], [posterior x, y, z]]
+    "width": (_length, 4.0),           # mm along the free edges the clip grasps
+    # mm of each leaflet from its free edge the clip holds (0: the free-edge nodes alone, an
+    # Alfieri stitch); a clip's arms grasp several mm
+    "depth": (_quantity(LENGTH, "mm", allow_zero=True), 0.0),
+    "gap": (_quantity(LENGTH, "mm", allow_zero=True), None),  # default: contact thickness
+    "stiffness": (_tie_stiffness, 5e6),
+    "tolerance": (_length, 1.5),
+}
+_RESECTION = {
+    "leaflet": (_LEAFLET, _MISSING),
+    "shape": (_choice("triangular", "quadrangular"), _MISSING),
+    "between": (_fraction_pair, None),
+    "segment": (_choice("a1", "a2", "a3", "p1", "p2", "p3"), None),
+    # fraction of the leaflet height from the free edge (the apex of a triangle)
+    "depth": (_pos, _MISSING),
+    "sutures": (_bool, True),
+    "gap": (_quantity(LENGTH, "mm", allow_zero=True), None),
+    "stiffness": (_tie_stiffness, 5e6),
+}
+
+
+def _items(path: str, v) -> list:
+    if isinstance(v, dict):
+        v = [v]
+    if not isinstance(v, list):
+        raise _Bad(path, f"expected a list of tables [[{path}]], got {v!r}")
+    return v
+
+
+def _check_repair(rep: dict, data: dict) -> None:
+    gen = data["mesh"]["generator"]
+    if gen not in ("valve", "file") and any(rep[k] for k in rep):
+        raise _Bad("repair", "repairs need a valve (generator = \"valve\" or a valve file)")
+    if rep["ring"] is not None:
+        r = rep["ring"] = _check_table("repair.ring", rep["ring"], _RING)
+        if not 16.0 <= r["size"] <= 50.0:
+            raise _Bad("repair.ring.size", f"expected a ring size in mm as surgeons name them "
+                       f"(16-50 mm; usual 26-40), got {r['size']:g}")
+        if data["annulus"]["target"] is not None:
+            raise _Bad("repair.ring", "give either annulus.target or repair.ring, not both")
+    out = []
+    for i, n in enumerate(_items("repair.neochord", rep["neochord"])):
+        path = f"repair.neochord[{i}]"
+        n = _check_table(path, n, _NEOCHORD)
+        if (n["at"] is None) == (n["point"] is None):
+            raise _Bad(path, "give either at (positions along the leaflet) or point")
+        out.append(n)
+    rep["neochord"] = out
+    out = []
+    for i, c in enumerate(_items("repair.clip", rep["clip"])):
+        path = f"repair.clip[{i}]"
+        c = _check_table(path, c, _CLIP)
+        given = [k for k in ("at", "points") if c[k] is not None]
+        if c["anterior"] is not None or c["posterior"] is not None:
+            if c["anterior"] is None or c["posterior"] is None:
+                raise _Bad(path, "give both anterior and posterior positions")
+            given.append("anterior/posterior")
+        if len(given) != 1:
+            raise _Bad(path, "give the clip's position once: at, anterior and posterior, or "
+                       "points")
+        if c["at"] is not None:
+            c["anterior"] = c["posterior"] = c["at"]
+        if c["points"] is not None:
+            pts = c["points"]
+            if not isinstance(pts, list) or len(pts) != 2:
+                raise _Bad(f"{path}.points", "expected [[anterior x, y, z], [posterior x, y, "
+                           f"z]], got {pts!r}")
+            c["points"] = [_vector3(f"{path}.points[{j}]", p) for j, p in enumerate(pts)]
+        out.append(c)
+    rep["clip"] = out
+    if rep["resection"] is not None:
+        r = rep["resection"] = _check_table("repair.resection", rep["resection"], _RESECTION)
+        if (r["between"] is None) == (r["segment"] is None):
+            raise _Bad("repair.resection", "give either between or segment")
+        if r["segment"] is not None:
+            named = {"a": "anterior", "p": "posterior"}[r["segment"][0]]
+            if r["leaflet"] != named:
+                raise _Bad("repair.resection.segment", f"{r['segment'].upper()} is on the "
+                           f"{named} leaflet, not the {r['leaflet']} one")
+        if r["depth"] > 1.0:
+            raise _Bad("repair.resection.depth", f"a fraction of the leaflet height (at most "
+                       f"1), got {r['depth']:g}")
+
+
+def _check_targets(data: dict, base_dir: Path) -> None:
+    from mvfem.meshes.io import read_points
+
+    for section in ("annulus", "papillary"):
+        t = data[section]["target"]
+        if t is None:
+            continue
+        p = Path(t)
+        p = p if p.is_absolute() else base_dir / p
+        if not p.is_file():
+            raise _Bad(f"{section}.target", f"no such file: {p}")
+        try:
+            pts = read_points(p)
+        except ValueError as e:
+            raise _Bad(f"{section}.target", str(e)) from None
+        if section == "annulus" and len(pts) < 3:
+            raise _Bad("annulus.target", f"{p}: a loop needs at least 3 points, got {len(pts)}")
+        data[section]["target"] = str(p)
+    if data["annulus"]["target"] is not None and data["boundary"]["clamp"] not in (
+            "annulus", "boundary"):
+        raise _Bad("annulus.target", "moves the clamped loop: needs boundary.clamp = "
+                   "\"annulus\" (valves) or \"boundary\"")
+    if data["papillary"]["target"] is not None and data["mesh"]["generator"] not in (
+            "valve", "file"):
+        raise _Bad("papillary.target", "only for valves with chordae")
+
+
 def _check_valve_files(mesh: dict, base_dir: Path) -> None:
     from mvfem.meshes.io import read_points
 
@@ -479,6 +665,8 @@ def _validate(raw: dict, base_dir: Path) -> dict:
     if (gen == "file" and "clamp" not in raw.get("boundary", {})
             and _has_annulus(data["mesh"]["file"])):
         data["boundary"]["clamp"] = "annulus"  # an imported valve, clamped like a generated one
+    _check_targets(data, base_dir)
+    _check_repair(data["repair"], data)
     valve_keys = [k for k in _VALVE_KEYS if data["mesh"][k] is not None]
     if valve_keys and gen != "valve":
         raise _Bad(f"mesh.{valve_keys[0]}", "only for generator = \"valve\"")

@@ -431,7 +431,10 @@ class PseudoTransient:
     on_step: Callable[[PseudoTimeRecord, "PseudoTransient"], None] | None = None
     #: prescribed motion: ``ramp(f)`` sets the Dirichlet values to the fraction ``f`` of their
     #: targets (an annulus moved to a ring, say); it is called with ``n / ramp_steps`` before
-    #: each of the first ``ramp_steps`` steps, so the motion is spread over them
+    #: each of the first ``ramp_steps`` steps, so the motion is spread over them. It may move
+    #: ``problem.u`` (which holds the current state when it is called: a lifting of the new
+    #: Dirichlet values into the interior), and may return True once the motion is complete
+    #: (no more calls; the steps go on to convergence)
     ramp: Callable[[float], None] | None = None
     ramp_steps: int = 0
     history: list[PseudoTimeRecord] = field(default_factory=list)
@@ -483,8 +486,10 @@ class PseudoTransient:
                     break
                 its += 1
                 if self.ramp is not None and its <= max(self.ramp_steps, 1) and not ramped:
-                    self.ramp(min(its / max(self.ramp_steps, 1), 1.0))
-                    ramped = its >= max(self.ramp_steps, 1)
+                    pb._update_u(x)
+                    done = self.ramp(min(its / max(self.ramp_steps, 1), 1.0))
+                    pb.u.vector.copy(x)  # the state, moved by the ramp or not
+                    ramped = bool(done) or its >= max(self.ramp_steps, 1)
                     r = pb.evaluate_residual(x)  # the Dirichlet rows now hold x - g
                     E = None
                 pb.b.copy(rhs)  # F(x), still in b from the last evaluation at x

@@ -151,3 +151,24 @@ def test_potential_is_the_residuals_primitive(follower):
         vals.append(MPI.COMM_WORLD.allreduce(fem.assemble_scalar(Pi), op=MPI.SUM))
     fd = (vals[0] - vals[1]) / (2 * h)
     assert abs(fd - F.dot(w.vector)) < 1e-6 * abs(F.dot(w.vector))
+
+
+@pytest.mark.parametrize("method", ["load-steps", "pseudo-time"])
+def test_zero_pressure_without_motion_stays_at_rest(tmp_path, capsys, method):
+    """No pressure and no prescribed motion: the reference state is the equilibrium (u = 0,
+    zero stress). Before, the force scale of the tolerances was the pressure load, 0: the
+    pseudo-time progress line divided by it (ZeroDivisionError) and load stepping could never
+    meet a zero tolerance (stopped short, exit 3)."""
+    scene = tmp_path / "rest.toml"
+    scene.write_text('title = "disk at rest"\n[mesh]\ngenerator = "disk"\nradius = 10.0\n'
+                     'size = 2.0\n[[region]]\nlaw = "mny"\nparams = "MNY-mean"\n'
+                     '[load]\npressure = 0.0\n')
+    # -v: every progress line is formatted and logged
+    rc = main(["-v", "run", str(scene), "--out", str(tmp_path / "run"),
+               "--set", f"solver.method={method}"])
+    assert rc == 0, capsys.readouterr().err[-2000:]
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["converged"] and s["pressure_Pa"] == 0.0
+    assert s["max_displacement_mm"] == 0.0
+    q = s["regions"]["membrane"]["radial_cauchy_stress_Pa"]
+    assert q["p5"] == 0.0 and q["p95"] == 0.0

@@ -43,3 +43,35 @@ def test_solver_options_coarse(tmp_path):
                         "2.5"], capture_output=True, text=True, env=_env(), timeout=900)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "lu: 11 converged" in r.stdout and "iterative: 11 converged" in r.stdout
+
+
+def test_scaling_script_on_two_ranks(tmp_path):
+    """scripts/scaling.py (issue 7) under mpirun -n 2 on a coarse disk: one JSON record with the
+    process count and a converged run whose centre deflection is the axisymmetric solution's
+    to the coarse mesh's error (2 % at 2 mm, README Speed against error)."""
+    import json
+
+    from mvfem import reference as ref
+
+    rec = tmp_path / "scaling.jsonl"
+    r = subprocess.run([*_mpirun(2), sys.executable, str(ROOT / "scripts" / "scaling.py"),
+                        "--case", "disk", "--size", "2", "--record", str(rec)],
+                       capture_output=True, text=True, env=_env(), timeout=300,
+                       stdin=subprocess.DEVNULL, check=False)
+    assert r.returncode == 0, r.stderr[-2000:]
+    row = json.loads(rec.read_text())
+    assert row["processes"] == 2 and row["converged"] and row["cells"] > 100
+    w = ref.axisymmetric_inflation(ref.neo_hookean(20e3), 3000.0, 10.0, 1.0).centre_deflection
+    assert abs(row["centre_mm"][2] - w) / w < 0.03
+
+
+def test_hard_cases_script_two_cases(tmp_path):
+    """scripts/hard_cases.py (issue 7) on two quick cases: the flat disk converges, the folded
+    imported valve is refused with one line; the table says so."""
+    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "hard_cases.py"), "--out",
+                        str(tmp_path / "hard"), "--cases", "flat-disk-cp08,inverted"],
+                       capture_output=True, text=True, env=_env(), timeout=300, check=False)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    table = (tmp_path / "hard" / "hard_cases.md").read_text()
+    assert "| flat-disk-cp08 |" in table and "| converged | 0 |" in table
+    assert "| rejected | 2 |" in table and "passes through itself" in table

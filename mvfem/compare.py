@@ -1,0 +1,459 @@
+"""Repair comparison (issue 8): ``mvfem repair-compare SCENE --repairs R1.toml R2.toml ...``.
+
+The unrepaired valve (the scene as written) and each repair are closed at systole (the scene's
+pressure) and, unless switched off, opened under a small atrial-side (diastolic) pressure;
+every run is one ``mvfem run`` process of the study runner (:mod:`mvfem.study`: resumable,
+``processes`` at a time, one line per finished run). Then:
+
+- ``comparison.csv``: one row per case (``COLUMNS``): regurgitant orifice area (with its
+  projected and leak-gap parts), coaptation length and area, tenting height, the 95th
+  percentile and the peak of the per-facet radial Cauchy stress over both leaflets, chordae
+  forces (native and neochordae), tie (clip, suture) forces, and from the diastolic run the
+  orifice area and the number of separate orifices;
+- ``comparison.png``: those numbers as bars, one per case;
+- ``shapes.png``: the closed valves side by side, seen from the atrium (radial stress, one
+  colour range for all) and from the side (the A2-P2 direction across), and the diastolic
+  valves seen from the atrium.
+
+A repair file is a TOML table of scene keys merged into the scene: tables key by key, other
+values (numbers, strings, lists such as ``[[repair.clip]]`` or ``chordae.edit``) replace the
+scene's. Its ``title`` names the repair (default: the file's stem); file names in it
+(``annulus.target``, ``papillary.target``, ``mesh.file``, ...) are relative to it. Every
+repair is built (mesh, ring, snapped points, resection) before anything runs: an impossible
+repair is one line naming the repair file and key, exit code 2.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import tomllib
+
+from mvfem.errors import InputError
+
+__all__ = ["COLUMNS", "DIASTOLIC_PRESSURE", "compare", "load_repair"]
+
+#: the atrial-side pressure of the diastolic check (Pa): the valve opens; a clip shows its two
+#: orifices
+DIASTOLIC_PRESSURE = -500.0
+COLUMNS = ("case", "title", "systole", "regurgitant_orifice_area_mm2",
+           "projected_orifice_area_mm2", "leak_gap_area_mm2", "coaptation_length_mm",
+           "coaptation_area_mm2", "tenting_height_mm", "annulus_area_mm2", "stress_p95_Pa",
+           "stress_max_Pa", "chordae_force_total_N", "chordae_force_max_N",
+           "neochord_force_total_N", "tie_force_max_N", "diastole",
+           "diastolic_orifice_area_mm2", "diastolic_orifice_count", "diastolic_orifice_areas_mm2",
+           "run_dir")
+#: keys whose values are file names (resolved against the repair file's directory)
+_PATH_KEYS = ("mesh.file", "mesh.annulus", "mesh.papillary", "reference.file",
+              "annulus.target", "papillary.target")
+_NAME = re.compile(r"[^A-Za-z0-9._-]+")
+
+
+def load_repair(path: str | Path, scene) -> tuple[str, str, dict]:
+    """(name, title, scene changes) of a repair file, validated against ``scene``.
+
+    Raises:
+        InputError: one line naming the repair file, the key and the problem.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"--repairs {path}: no such repair file")
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"{path}: not valid TOML: {e}") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file") from None
+    title = raw.pop("title", path.stem)
+    if not isinstance(title, str):
+        raise InputError(f"{path}: title: expected a string, got {title!r}")
+    if not raw:
+        raise InputError(f"{path}: the repair changes nothing (no scene keys)")
+    from mvfem.study import _flatten
+
+    changes = _flatten(raw)
+    for k in list(changes):
+        if k in _PATH_KEYS and isinstance(changes[k], str):
+            p = Path(changes[k])
+            changes[k] = str(p if p.is_absolute() else (path.resolve().parent / p))
+    try:
+        scene.with_changes(changes)
+    except InputError as e:
+        raise InputError(f"{path}: {str(e).split(': ', 1)[-1]}") from None
+    name = _NAME.sub("-", path.stem).strip("-") or "repair"
+    return name, title, changes
+
+
+def _check_buildable(scene, label: str) -> dict:
+    """Build the repaired model on this process alone (mesh, ring, snapped points,
+    resection): its input errors are the repair's. Returns the valve frame for the figures."""
+    from mpi4py import MPI
+
+    from mvfem.model import build_model
+
+    try:
+        model = build_model(scene, MPI.COMM_SELF)
+    except InputError as e:
+        text = str(e)
+        if text.startswith(scene.source):
+            text = text[len(scene.source):].lstrip(": ")
+        raise InputError(f"{label}: {text}") from None
+    s = model.surface
+    return {"frame": np.asarray(getattr(s, "frame", np.eye(3)), dtype=float),
+            "centre": np.asarray(getattr(s, "centre", np.zeros(3)), dtype=float)}
+
+
+def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: int | None = None,
+            diastolic: float | None = DIASTOLIC_PRESSURE, changes: dict | None = None,
+            progress: bool = True, timeout: float | None = None) -> dict:
+    """Run the unrepaired scene and each repair; write the comparison (module docstring).
+
+    Args:
+        scene_path: the pathological valve's scene file.
+        repairs: repair files.
+        out: the comparison directory (made by mvfem, or new); resumable.
+        processes: runs at a time (default: the cores available).
+        diastolic: the pressure (Pa, negative: atrial side) of the diastolic runs; None skips
+            them.
+        changes: scene changes applied to every case first (``--set``).
+
+    Returns:
+        dict with ``rows`` (the table), ``files``, ``counts``.
+    """
+    import hashlib
+
+    from mvfem.outputs import prepare_out
+    from mvfem.scene import load_scene
+    from mvfem.study import Case, RunSpec, Study, _leaflet_of, run_study
+
+    scene_path = Path(scene_path).resolve()
+    base = load_scene(scene_path)
+    changes = dict(changes or {})
+    if changes:
+        base.with_changes(changes)
+    if not repairs:
+        raise InputError("--repairs: give at least one repair file")
+    if diastolic is not None and not diastolic < 0:
+        raise InputError(f"--diastolic: expected a negative (atrial-side) pressure, got "
+                         f"{diastolic:g} Pa")
+    cases = [("unrepaired", "unrepaired", {})]
+    for r in repairs:
+        name, title, ch = load_repair(r, base.with_changes(changes) if changes else base)
+        while name in [c[0] for c in cases]:
+            name += "_"
+        cases.append((name, title, ch))
+    view = None
+    for name, _title, ch in cases:  # every repair built before anything runs
+        v = _check_buildable(base.with_changes({**changes, **ch}),
+                             "the scene" if name == "unrepaired" else
+                             str(repairs[[c[0] for c in cases].index(name) - 1]))
+        view = view or v
+    phases = [("systole", {})]
+    if diastolic is not None:
+        phases.append(("diastole", {"load.pressure": float(diastolic)}))
+    regions = [{"label": r["label"] or "membrane", "leaflet": _leaflet_of(r),
+                "set": r.get("set", "custom")} for r in base["region"]]
+    sets = {leaf: next((r["set"] for r in regions if r["leaflet"] == leaf), "")
+            for leaf in ("anterior", "posterior")}
+    digest = hashlib.sha256(scene_path.read_bytes()).hexdigest()
+    runs, study_cases = [], []
+    for name, _title, ch in cases:
+        study_cases.append(Case(name=name, scene=str(scene_path), changes={**changes, **ch}))
+        for phase, extra in phases:
+            all_changes = {**changes, **ch, **extra, "output.xdmf": True}
+            runs.append(RunSpec(case=name, set=phase, anterior_set=sets["anterior"],
+                                posterior_set=sets["posterior"], scene=str(scene_path),
+                                changes=all_changes, regions=regions, scene_sha256=digest))
+    study = Study(title=f"repairs of {base['title'] or scene_path.name}", cases=study_cases,
+                  sets=[p for p, _ in phases], processes=processes or 1, timeout_s=timeout,
+                  map_case="unrepaired", include_stopped=True, biaxial=False, runs=runs,
+                  source=str(scene_path))
+    out = prepare_out(out).resolve()
+    res = run_study(study, out, processes=processes, progress=progress, report=False)
+    rows = _rows(study, out, {c[0]: c[1] for c in cases})
+    files = [_write_csv(rows, out / "comparison.csv")]
+    files += [p for p in (_bars(rows, out / "comparison.png"),
+                          _shapes(study, out, view, out / "shapes.png",
+                                  {c[0]: c[1] for c in cases}, diastolic)) if p is not None]
+    return {"rows": rows, "files": files, "counts": res}
+
+
+# --------------------------------------------------------------------------- table
+def _summary(d: Path) -> dict | None:
+    import json
+
+    try:
+        return json.loads((d / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _rows(study, out: Path, titles: dict) -> list[dict]:
+    from mvfem.figures import read_fields
+
+    rows = []
+    for case in study.cases:
+        row = dict.fromkeys(COLUMNS)
+        row.update(case=case.name, title=titles[case.name])
+        for spec in study.runs:
+            if spec.case != case.name:
+                continue
+            d = spec.dir(out)
+            s = _summary(d)
+            status = "missing" if s is None else ("converged" if s.get("converged")
+                                                  else "stopped")
+            v = (s or {}).get("valve") or {}
+            if spec.set == "systole":
+                row["systole"] = status
+                row["run_dir"] = str(d.relative_to(out))
+                for k in ("regurgitant_orifice_area_mm2", "projected_orifice_area_mm2",
+                          "leak_gap_area_mm2", "coaptation_length_mm", "coaptation_area_mm2",
+                          "tenting_height_mm", "annulus_area_mm2"):
+                    row[k] = v.get(k)
+                ch = v.get("chordae_force_N") or {}
+                row["chordae_force_total_N"] = ch.get("total")
+                row["chordae_force_max_N"] = ch.get("max")
+                row["neochord_force_total_N"] = (ch.get("neochord") or {}).get("total")
+                ties = v.get("ties") or {}
+                if ties:
+                    row["tie_force_max_N"] = max(t["max_force_N"] for t in ties.values())
+                f = read_fields(d) if s is not None else None
+                if f is not None:
+                    stress = f["radial_cauchy_stress_Pa"]
+                    row["stress_p95_Pa"] = float(np.percentile(stress, 95))
+                    row["stress_max_Pa"] = float(stress.max())
+            else:
+                row["diastole"] = status
+                row["diastolic_orifice_area_mm2"] = v.get("diastolic_orifice_area_mm2")
+                row["diastolic_orifice_count"] = v.get("orifice_count")
+                areas = v.get("orifice_areas_mm2")
+                row["diastolic_orifice_areas_mm2"] = (" ".join(f"{a:.1f}" for a in areas)
+                                                     if areas else None)
+        rows.append(row)
+    return rows
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "" if not math.isfinite(v) else f"{v:.6g}"
+    return str(v)
+
+
+def _write_csv(rows: list[dict], path: Path) -> Path:
+    import os
+
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(COLUMNS)
+    for r in rows:
+        w.writerow([_fmt(r.get(c)) for c in COLUMNS])
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(buf.getvalue())
+    os.replace(tmp, path)
+    return path
+
+
+def table_text(rows: list[dict]) -> str:
+    """The comparison as a Markdown table (what the CLI prints and README quotes)."""
+    cols = [("case", "case", "{}"), ("systole", "systole", "{}"),
+            ("regurgitant_orifice_area_mm2", "orifice mm2", "{:.1f}"),
+            ("coaptation_length_mm", "coapt. length mm", "{:.2f}"),
+            ("coaptation_area_mm2", "coapt. area mm2", "{:.0f}"),
+            ("tenting_height_mm", "tenting mm", "{:.2f}"),
+            ("stress_p95_Pa", "stress p95 kPa", "k{:.0f}"),
+            ("stress_max_Pa", "stress max kPa", "k{:.0f}"),
+            ("chordae_force_total_N", "chordae N", "{:.2f}"),
+            ("neochord_force_total_N", "neochordae N", "{:.2f}"),
+            ("tie_force_max_N", "tie max N", "{:.2f}"),
+            ("diastole", "diastole", "{}"),
+            ("diastolic_orifice_area_mm2", "diastolic orifice mm2", "{:.0f}"),
+            ("diastolic_orifice_count", "orifices", "{}")]
+    lines = ["| " + " | ".join(c[1] for c in cols) + " |",
+             "|" + "|".join("---" for _ in cols) + "|"]
+    for r in rows:
+        cells = []
+        for key, _, f in cols:
+            v = r.get(key)
+            if v is None:
+                cells.append("-")
+            elif f.startswith("k"):
+                cells.append(f[1:].format(v / 1e3))
+            else:
+                cells.append(f.format(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- figures
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _bars(rows: list[dict], path: Path) -> Path | None:
+    plt = _plt()
+    panels = [("regurgitant_orifice_area_mm2", "regurgitant orifice area (mm$^2$)", 1.0),
+              ("coaptation_length_mm", "coaptation length (mm)", 1.0),
+              ("coaptation_area_mm2", "coaptation area (mm$^2$)", 1.0),
+              ("tenting_height_mm", "tenting height (mm)", 1.0),
+              ("stress_p95_Pa", "radial Cauchy stress, 95th pct. (kPa)", 1e-3),
+              ("stress_max_Pa", "radial Cauchy stress, peak (kPa)", 1e-3),
+              ("chordae_force_total_N", "chordae + neochordae force (N)", 1.0),
+              ("diastolic_orifice_area_mm2", "diastolic orifice area (mm$^2$)", 1.0)]
+    names = [r["case"] for r in rows]
+    fig, axes = plt.subplots(2, 4, figsize=(15, 7), dpi=110)
+    colours = ["0.45"] + [f"C{i}" for i in range(len(rows) - 1)]
+    for ax, (key, label, scale) in zip(axes.ravel(), panels):
+        vals = np.array([np.nan if r.get(key) is None else r[key] * scale for r in rows])
+        ax.bar(range(len(rows)), np.nan_to_num(vals), color=colours)
+        ax.axhline(0.0, color="k", linewidth=0.6)
+        ax.set_title(label, fontsize=10)
+        ax.set_xticks(range(len(rows)))
+        ax.set_xticklabels(names, rotation=30, ha="right", fontsize=8)
+        top = np.nanmax(np.abs(vals)) if np.isfinite(vals).any() else 1.0
+        ax.set_ylim(min(0.0, np.nanmin(vals) * 1.15) if np.isfinite(vals).any() else 0.0,
+                    1.18 * top if top > 0 else 1.0)
+        status_key = "diastole" if key == "diastolic_orifice_area_mm2" else "systole"
+        for i, r in enumerate(rows):
+            words = []
+            if not np.isfinite(vals[i]):
+                words.append("n/a")
+            else:
+                words.append(f"{vals[i]:.0f}" if abs(vals[i]) >= 100 else f"{vals[i]:.3g}")
+            if key == "diastolic_orifice_area_mm2" and r.get("diastolic_orifice_count"):
+                n = r["diastolic_orifice_count"]
+                words.append(f"{n} orifice{'s' if n != 1 else ''}")
+            if r.get(status_key) not in (None, "converged"):
+                words.append(f"({r.get(status_key)})")
+            ax.annotate("\n".join(words), (i, max(vals[i], 0.0) if np.isfinite(vals[i]) else 0.0),
+                        ha="center", va="bottom", fontsize=7,
+                        color="red" if r.get(status_key) not in (None, "converged") else "k")
+    legend = "; ".join(f"{r['case']} = {r['title']}" for r in rows if r["title"] != r["case"])
+    fig.suptitle("repairs compared: systole at the scene's pressure; diastolic orifice under "
+                 "an atrial-side pressure" + (f"\n{legend}" if legend else ""), fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None = None,
+            diastolic: float | None = None) -> Path | None:
+    """The closed (and diastolic) valves side by side: one length scale per row (mm), one
+    colour range (radial stress, 5-95th percentile over every closed valve)."""
+    import textwrap
+
+    from matplotlib.collections import PolyCollection
+
+    from mvfem.figures import read_fields
+
+    plt = _plt()
+    phases = study.sets
+    cases = [c.name for c in study.cases]
+    titles = titles or {}
+    data = {}
+    for spec in study.runs:
+        f = read_fields(spec.dir(out))
+        if f is not None:
+            data[(spec.case, spec.set)] = f
+    if not data:
+        return None
+    frame = view["frame"] if view else np.eye(3)
+    centre = view["centre"] if view else np.zeros(3)
+    ant, lat, axis = frame[0], frame[1], frame[2]
+    right = -lat  # seen from the atrium, anterior up: the anterolateral commissure on the left
+    stresses = [np.log10(np.clip(f["radial_cauchy_stress_Pa"], 1.0, None))
+                for (c, p), f in data.items() if p == "systole"]
+    lo, hi = (np.percentile(np.concatenate(stresses), [5, 95]) if stresses else (0.0, 1.0))
+    kinds = [("systole", "top"), ("systole", "side")]
+    if len(phases) > 1:
+        kinds.append(("diastole", "top"))
+    row_names = ["systole, seen from the atrium\n(anterior up), mm",
+                 "systole, side view\n(anterior right, atrium up), mm"]
+    if len(phases) > 1:
+        row_names.append("diastole" + (f" ({diastolic:g} Pa)" if diastolic is not None else "")
+                         + ",\nseen from the atrium, mm")
+
+    def project(x, kind):
+        if kind == "top":
+            return (np.stack([(x - centre) @ right, (x - centre) @ ant], axis=1),
+                    (x - centre) @ axis)
+        return np.stack([(x - centre) @ ant, (x - centre) @ axis], axis=1), (x - centre) @ lat
+
+    # one length scale per row: the same limits in every panel of it
+    limits = []
+    for phase, kind in kinds:
+        pts = [project(f["X"] + f["u"], kind)[0] for (c, p), f in data.items() if p == phase]
+        if pts:
+            pts = np.concatenate(pts)
+            lo_xy, hi_xy = pts.min(axis=0), pts.max(axis=0)
+            pad = 0.04 * (hi_xy - lo_xy).max()
+            limits.append((lo_xy - pad, hi_xy + pad))
+        else:
+            limits.append((np.zeros(2), np.ones(2)))
+    spans = [hi_ - lo_ for lo_, hi_ in limits]
+    heights = [sp[1] / sp[0] for sp in spans]
+    width = 3.4
+    fig, axes = plt.subplots(len(kinds), len(cases),
+                             figsize=(width * len(cases) + 1.6,
+                                      sum(width * h for h in heights) + 1.6),
+                             dpi=110, squeeze=False,
+                             gridspec_kw={"height_ratios": heights})
+    pc_last = None
+    for j, case in enumerate(cases):
+        for i, (phase, kind) in enumerate(kinds):
+            ax = axes[i, j]
+            ax.set_aspect("equal")
+            ax.set_xlim(limits[i][0][0], limits[i][1][0])
+            ax.set_ylim(limits[i][0][1], limits[i][1][1])
+            ax.tick_params(labelsize=7)
+            if j:
+                ax.set_yticklabels([])
+            f = data.get((case, phase))
+            if i == 0:
+                ax.set_title("\n".join(textwrap.wrap(titles.get(case, case), 28)), fontsize=9)
+            if j == 0:
+                ax.set_ylabel(row_names[i], fontsize=8)
+            if f is None:
+                ax.text(0.5, 0.5, "no result", ha="center", transform=ax.transAxes)
+                continue
+            spec = next(r for r in study.runs if r.case == case and r.set == phase)
+            s = _summary(spec.dir(out)) or {}
+            if not s.get("converged"):
+                ax.text(0.02, 0.02, "not converged: last state", transform=ax.transAxes,
+                        fontsize=7, color="red")
+            x = f["X"] + f["u"]
+            cells = f["cells"]
+            leaflet = np.where(f["region"] == 0, 0, 1)
+            p2, d = project(x, kind)
+            order = np.argsort(d[cells].mean(axis=1))
+            if phase == "systole" and kind == "top":
+                v = np.log10(np.clip(f["radial_cauchy_stress_Pa"], 1.0, None))
+                pc = PolyCollection(p2[cells[order]], array=v[order], cmap="viridis",
+                                    edgecolors="face", linewidths=0.1)
+                pc.set_clim(lo, hi if hi > lo else lo + 1e-9)
+                pc_last = pc
+            else:
+                colours = np.array([[0.55, 0.7, 0.95, 1.0], [0.95, 0.65, 0.55, 1.0]])
+                pc = PolyCollection(p2[cells[order]], facecolors=colours[leaflet[order]],
+                                    edgecolors="k", linewidths=0.1)
+            ax.add_collection(pc)
+    if pc_last is not None:
+        fig.colorbar(pc_last, ax=axes[0, :].tolist(), shrink=0.9, pad=0.02,
+                     label="radial Cauchy stress\n(log10 Pa; 5-95 % of all cases)")
+    fig.suptitle("closed valves, same scale in each row (top row: radial stress, one colour "
+                 "range for all; other rows: blue anterior, red posterior)", fontsize=10)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
