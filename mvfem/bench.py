@@ -387,20 +387,11 @@ def run_bench(out: str | Path, quick: bool = False, comm=MPI.COMM_WORLD,
         problems: only these problems (default all: foppl, neo-hookean, valve).
         say: a callable for one progress line per run (rank 0), or None.
     """
-    from mvfem.errors import InputError
-    from mvfem.outputs import prepare_out
+    from mvfem.outputs import prepare_out_on_root
 
     t0 = time.perf_counter()
     out = Path(out)
-    refused = None
-    if comm.rank == 0:
-        try:
-            prepare_out(out)
-        except InputError as e:
-            refused = str(e)
-    refused = comm.bcast(refused, root=0)
-    if refused:
-        raise InputError(refused)
+    prepare_out_on_root(out, comm)
     todo = [st for st in settings(quick) if problems is None or st.problem in problems]
     rows: list[dict] = []
     valve_ref: dict = {}

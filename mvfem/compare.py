@@ -32,9 +32,9 @@ import re
 from pathlib import Path
 
 import numpy as np
-import tomllib
 
 from mvfem.errors import InputError
+from mvfem.scene import read_toml
 
 __all__ = ["COLUMNS", "DIASTOLIC_PRESSURE", "compare", "load_repair"]
 
@@ -61,14 +61,7 @@ def load_repair(path: str | Path, scene) -> tuple[str, str, dict]:
         InputError: one line naming the repair file, the key and the problem.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"--repairs {path}: no such repair file")
-    try:
-        raw = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(f"{path}: not valid TOML: {e}") from None
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file") from None
+    raw = read_toml(path, "repair", missing=f"--repairs {path}: no such repair file")
     title = raw.pop("title", path.stem)
     if not isinstance(title, str):
         raise InputError(f"{path}: title: expected a string, got {title!r}")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from mvfem.errors import InputError
 
-__all__ = ["prepare_out", "write_json", "MARKER"]
+__all__ = ["prepare_out", "prepare_out_on_root", "write_json", "MARKER"]
 
 #: file that marks a directory as mvfem output, so later runs may write into it again
 MARKER = ".mvfem-output"
@@ -332,3 +332,19 @@ def write_outputs(result, problem, write: bool = True) -> None:
     if write and comm.rank == 0:
         write_json(s, result.out / "summary.json")
     comm.Barrier()
+
+
+def prepare_out_on_root(out, comm) -> None:
+    """:func:`prepare_out` on rank 0, its verdict shared (collective): a refused directory
+    is the same InputError on every rank, so no rank runs on alone."""
+    from mvfem.errors import InputError
+
+    refused = None
+    if comm.rank == 0:
+        try:
+            prepare_out(out)
+        except InputError as e:
+            refused = str(e)
+    refused = comm.bcast(refused, root=0)
+    if refused:
+        raise InputError(refused)

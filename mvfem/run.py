@@ -454,20 +454,12 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         A :class:`Result`; ``result.converged`` is False when the solver stopped short, in which
         case the last converged state is what the outputs show.
     """
-    from mvfem.outputs import prepare_out, write_outputs
+    from mvfem.outputs import prepare_out_on_root, write_outputs
 
     t_start = time.perf_counter()
     scene = load_scene(scene)
-    if out is not None:  # checked on rank 0, the verdict shared: no rank may run on alone
-        refused = None
-        if comm.rank == 0:
-            try:
-                prepare_out(out)
-            except InputError as e:
-                refused = str(e)
-        refused = comm.bcast(refused, root=0)
-        if refused:
-            raise InputError(refused)
+    if out is not None:
+        prepare_out_on_root(out, comm)
     model = build_model(scene, comm)
     t_build = time.perf_counter() - t_start
     s = scene["solver"]

@@ -18,7 +18,7 @@ from typing import Any, Callable
 from mvfem.errors import InputError
 from mvfem.units import AREA, LENGTH, PRESSURE, STIFFNESS, parse_quantity
 
-__all__ = ["Scene", "load_scene", "parse_set_option", "GENERATORS", "LAW_NAMES"]
+__all__ = ["Scene", "load_scene", "parse_set_option", "read_toml", "GENERATORS", "LAW_NAMES"]
 
 GENERATORS = ("disk", "square", "sphere", "octasphere", "tube", "valve", "file")
 LAW_NAMES = ("svk", "mny", "holzapfel", "neo-hookean")
@@ -746,15 +746,20 @@ def load_scene(scene: str | Path | dict | Scene) -> Scene:
     if isinstance(scene, dict):
         return _make(copy.deepcopy(scene), "<dict>", Path("."))
     path = Path(scene)
+    return _make(read_toml(path, "scene"), str(path), path.resolve().parent)
+
+
+def read_toml(path: Path, what: str, missing: str | None = None) -> dict:
+    """The table of a TOML file; one-line InputError when it is missing (``missing``, else
+    "PATH: no such WHAT file"), not TOML or not text (scenes, studies, repair files)."""
     if not path.is_file():
-        raise InputError(f"{path}: no such scene file")
+        raise InputError(missing or f"{path}: no such {what} file")
     try:
-        raw = tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise InputError(f"{path}: not valid TOML: {e}") from None
     except UnicodeDecodeError:
         raise InputError(f"{path}: not a text file") from None
-    return _make(raw, str(path), path.resolve().parent)
 
 
 def parse_set_option(text: str) -> tuple[str, Any]:

@@ -51,9 +51,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import tomllib
 
 from mvfem.errors import InputError
+from mvfem.scene import read_toml
 
 __all__ = ["Study", "Case", "RunSpec", "load_study", "run_study", "collect_results",
            "write_results_csv", "default_sets", "default_processes", "RESULT_COLUMNS",
@@ -245,14 +245,7 @@ def load_study(study: str | Path | dict, base_dir: str | Path | None = None) -> 
     else:
         path = Path(study)
         source = str(path)
-        if not path.is_file():
-            raise InputError(f"{path}: no such study file")
-        try:
-            raw = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as e:
-            raise InputError(f"{path}: not valid TOML: {e}") from None
-        except UnicodeDecodeError:
-            raise InputError(f"{path}: not a text file") from None
+        raw = read_toml(path, "study")
         base = path.resolve().parent
 
     def bad(key: str, message: str):
