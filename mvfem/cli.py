@@ -291,6 +291,31 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def _cmd_calibrate(args) -> int:
+    import dolfinx  # noqa: F401  (PETSc initialisation is collective: before anything else)
+    from mpi4py import MPI
+
+    from mvfem.calibrate import calibrate, parse_bounds, parse_fit, parse_start
+    from mvfem.scene import load_scene
+
+    fit = parse_fit(args.fit)
+    bounds = parse_bounds(args.bounds, len(fit))
+    start = parse_start(args.start, len(fit), bounds, [1.0] * len(fit)) if args.start else None
+    if args.max_evals < 1:
+        raise InputError(f"--max-evals {args.max_evals}: expected at least 1")
+    scene = load_scene(args.scene)
+    say = _say if MPI.COMM_WORLD.rank == 0 else (lambda s: None)
+    res = calibrate(scene, args.reference, fit, args.out, bounds=bounds, start=start,
+                    max_evals=args.max_evals, warm=args.warm_start, say=say)
+    h = res["held_apart"]
+    for q, v in h["fitted"].items():
+        r = (h.get("reference") or {}).get(q)
+        _say(f"  held apart {q}: {'n/a' if v is None else f'{v:.3g}'}"
+             + ("" if r is None else f" (reference {r:.3g})"))
+    _say(f"wrote {args.out}/calibration.json, evaluations.csv, evals/")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of `mvfem` (exposed for documentation and tests)."""
     p = _Parser(prog="mvfem", description="Mitral valve closure with hyperelastic membranes.")
@@ -361,6 +386,22 @@ def build_parser() -> argparse.ArgumentParser:
                     "results/bench)")
     be.add_argument("--problems", help="comma-separated subset of foppl, neo-hookean, valve")
     be.set_defaults(func=_cmd_bench)
+
+    ca = sub.add_parser("calibrate", help="fit chordal length factors (or other scene keys) to "
+                        "a reference closed surface: calibration.json, evaluations.csv")
+    ca.add_argument("scene", help="scene file (TOML)")
+    ca.add_argument("--reference", required=True, help="reference closed surface (any meshio "
+                    "format, cell data 'leaflet')")
+    ca.add_argument("--fit", required=True, help="comma-separated scene keys, e.g. "
+                    "chordae.marginal.length_factor,chordae.basal.length_factor")
+    ca.add_argument("--bounds", help="MIN:MAX per key, comma-separated, or one for all "
+                    "(default 0.8:1.4)")
+    ca.add_argument("--start", help="start values, comma-separated (default: the scene's)")
+    ca.add_argument("--max-evals", type=int, default=30, help="solves at most (default 30)")
+    ca.add_argument("--warm-start", action="store_true", help="start each solve from the last "
+                    "converged one (faster, but path dependent: see README)")
+    ca.add_argument("--out", required=True, help="output directory")
+    ca.set_defaults(func=_cmd_calibrate)
 
     m = sub.add_parser("materials", help="list parameter sets with law, values, thickness, source")
     m.add_argument("--leaflet", choices=("anterior", "posterior"))

@@ -445,8 +445,14 @@ def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, loa
 
 
 def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COMM_WORLD,
-          progress: bool = True, write: bool = True) -> Result:
+          progress: bool = True, write: bool = True,
+          initial: np.ndarray | None = None) -> Result:
     """Solve ``scene`` (collective on ``comm``); write outputs to ``out`` when given.
+
+    ``initial``: a warm start, the local displacement array (``result.u.x.array``) of an earlier
+    solve of the same mesh on the same ranks, e.g. the previous evaluation of a calibration. It
+    is ignored when the scene prescribes a boundary motion (that ramp starts from the open
+    state) or when its length does not match.
 
     Raises:
         InputError: the scene is invalid (nothing is written).
@@ -462,6 +468,9 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         prepare_out_on_root(out, comm)
     model = build_model(scene, comm)
     t_build = time.perf_counter() - t_start
+    if initial is not None and not model.motion and len(initial) == len(model.u.x.array):
+        model.u.x.array[:] = initial
+        model.u.x.scatter_forward()
     s = scene["solver"]
     load_norm = _load_scale(model)
     model.pressure.value = 0.0

@@ -1,0 +1,99 @@
+"""mvfem calibrate (issue 9, item 2): bad input through the CLI, and the synthetic truth."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+import mvfem
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / "mvfem" / "data" / "demo.toml"
+serial = pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="spawns its own process per case")
+
+
+def _env():
+    from test_scripts import _env as env
+
+    return env()
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """A small closed-looking surface with leaflet labels, near the demo valve (no solve)."""
+    from mvfem.meshes import write_surface
+
+    d = tmp_path_factory.mktemp("ref")
+    x = np.array([[-10.0, -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]])
+    tri = np.array([[0, 1, 2], [0, 2, 3]])
+    write_surface(d / "near.vtu", x, tri, cell_data={"leaflet": np.array([1, 2])})
+    write_surface(d / "far.vtu", x + [80.0, 0, 0], tri, cell_data={"leaflet": np.array([1, 2])})
+    return d
+
+
+def _run(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "mvfem.cli", "calibrate", str(DEMO), *args],
+                          capture_output=True, text=True, env=_env(), cwd=cwd, timeout=120)
+
+
+FIT = "chordae.marginal.length_factor"
+
+
+@serial
+@pytest.mark.parametrize("case, args, words", [
+    ("missing", ["--reference", "nope.vtu", "--fit", FIT], "no such file"),
+    ("far", ["--reference", "{far}", "--fit", FIT], "does not overlap"),
+    ("unknown key", ["--reference", "{near}", "--fit", "chordae.marginal.lenght_factor"],
+     "unknown key"),
+    ("not numeric", ["--reference", "{near}", "--fit", "title"], "--fit title"),
+    ("empty bounds", ["--reference", "{near}", "--fit", FIT, "--bounds", "1.3:0.9"],
+     "no value satisfies it"),
+    ("start outside", ["--reference", "{near}", "--fit", FIT, "--bounds", "0.9:1.3",
+                       "--start", "1.5"], "outside the bounds"),
+    ("bounds count", ["--reference", "{near}", "--fit", f"{FIT},chordae.basal.length_factor",
+                      "--bounds", "0.9:1.3,1:1.2,1:2"], "3 ranges for 2"),
+])
+def test_bad_input_exits_2_with_one_line(tmp_path, reference, case, args, words):
+    """Each bad input: exit code 2, one line on stderr naming what is wrong, nothing written."""
+    args = [a.format(far=reference / "far.vtu", near=reference / "near.vtu") for a in args]
+    r = _run(*args, "--out", str(tmp_path / "out"), cwd=tmp_path)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2, r.stderr
+    assert len(lines) == 1 and lines[0].startswith("mvfem: error:"), r.stderr
+    assert words in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_synthetic_truth(shared_tmp):
+    """Close the demo valve at mesh size 4 mm with marginal length factor 1.1; write its closed
+    leaflets as the reference; calibrate from 1.0 within 0.9:1.3. The fitted factor is the
+    truth within 0.02 and the mean distance drops well below the start's."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from valve_refinement import closed_surface
+
+    from mvfem.calibrate import calibrate
+
+    base = mvfem.load_scene(DEMO).with_changes({"mesh.size": 4.0})
+    truth = mvfem.solve(base.with_changes({FIT: 1.1}), out=shared_tmp / "truth", progress=False)
+    assert truth.converged
+    ref = shared_tmp / "truth" / "closed.vtu"
+    closed_surface(truth, ref)
+    res = calibrate(base, ref, [FIT], shared_tmp / "cal", bounds=[(0.9, 1.3)], start=[1.0],
+                    max_evals=25, say=print)
+    fitted = res["fitted"][FIT]
+    before, after = res["error_before_mm"]["mean_abs_error_mm"], \
+        res["error_after_mm"]["mean_abs_error_mm"]
+    print(json.dumps({k: res[k] for k in ("fitted", "error_before_mm", "error_after_mm",
+                                          "evaluations", "time_s", "held_apart")}))
+    assert abs(fitted - 1.1) < 0.02
+    assert after < 0.2 * before
+    rows = (shared_tmp / "cal" / "evaluations.csv").read_text().splitlines()
+    assert len(rows) == res["evaluations"] + 1
+    assert "reference" in res["held_apart"]  # truth/summary.json sits next to the reference
