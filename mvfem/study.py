@@ -618,6 +618,20 @@ def _quote(a: str) -> str:
 _INTERRUPTED = (130, 143, -signal.SIGINT, -signal.SIGTERM)
 
 
+def _silent_start_exit(r: _Running, out: Path, within_s: float = 10.0) -> bool:
+    """The run ended within ``within_s`` of its start with nothing in its log but the
+    command line and no summary."""
+    d = r.spec.dir(out)
+    if time.perf_counter() - r.started > within_s or (d / "summary.json").exists():
+        return False
+    r.log.flush()
+    try:
+        lines = (d / "run.log").read_text(errors="replace").strip().splitlines()
+    except OSError:
+        return False
+    return len(lines) <= 1
+
+
 def _finish(r: _Running, out: Path, rc: int | None, reason: str | None = None) -> dict | None:
     """Record a run that ended: status.json from its exit code and summary (None: the run was
     interrupted from outside and stays to do)."""
@@ -669,6 +683,7 @@ def _schedule(study: Study, out: Path, todo: list, processes: int, prog: _Progre
     running: list[_Running] = []
     waiting: list[RunSpec] = []     # held by an orphan of an earlier study: retried later
     said_waiting: set[str] = set()
+    retried: set[str] = set()
     durations: dict[str, list[float]] = {}
     done = skipped
     ran = 0
@@ -713,6 +728,18 @@ def _schedule(study: Study, out: Path, todo: list, processes: int, prog: _Progre
                     else:
                         continue
                 running.remove(r)
+                if rc == 1 and reason is None and r.spec.key not in retried \
+                        and _silent_start_exit(r, out):
+                    # about one run in a few hundred exits 1 at start-up with no output at all
+                    # (no Python traceback: the MPI singleton's start-up; README, Studies);
+                    # once per run it is started again, and a second such exit is recorded
+                    retried.add(r.spec.key)
+                    r.log.close()
+                    r.lock.release()
+                    prog.line(f"  {r.spec.key}: exit code 1 with no output at start-up; "
+                              "started again once")
+                    queue.insert(0, r.spec)
+                    continue
                 rec = _finish(r, out, rc, reason)
                 if rec is None:  # stopped from outside: the study is being interrupted
                     prog.line(f"  {r.spec.key}: interrupted (exit code {rc}); not recorded")
