@@ -146,6 +146,16 @@ static double pt_fixed(const double *y, int type, double *g) {
   return d;
 }
 
+
+/* h = (h + h^T) / 2 for a 12 x 12 row-major block */
+static void symmetrise12(double *h) {
+  for (int r = 0; r < 12; r++)
+    for (int c = r + 1; c < 12; c++) {
+      double s = 0.5 * (h[12 * r + c] + h[12 * c + r]);
+      h[12 * r + c] = h[12 * c + r] = s;
+    }
+}
+
 void pt_hess(long m, const double *y, double rel, double *H) {
   for (long i = 0; i < m; i++) {
     double yy[12], gp[12], gm[12], g0[12], *h = H + 144 * i;
@@ -159,11 +169,7 @@ void pt_hess(long m, const double *y, double rel, double *H) {
       yy[j] = keep;
       for (int r = 0; r < 12; r++) h[12 * r + j] = (gp[r] - gm[r]) / (2 * step);
     }
-    for (int r = 0; r < 12; r++)
-      for (int c = r + 1; c < 12; c++) {
-        double s = 0.5 * (h[12 * r + c] + h[12 * c + r]);
-        h[12 * r + c] = h[12 * c + r] = s;
-      }
+    symmetrise12(h);
   }
 }
 
@@ -274,11 +280,7 @@ void ee_hess(long m, const double *y, const double *w, const double *eps, double
       yy[j] = keep;
       for (int r = 0; r < 12; r++) h[12 * r + j] = (gp[r] - gm[r]) / (2 * step);
     }
-    for (int r = 0; r < 12; r++)
-      for (int c = r + 1; c < 12; c++) {
-        double s = 0.5 * (h[12 * r + c] + h[12 * c + r]);
-        h[12 * r + c] = h[12 * c + r] = s;
-      }
+    symmetrise12(h);
   }
 }
 """
