@@ -84,8 +84,10 @@ class Model:
     point_terms: object = None   # mvfem.nodal.PointTerms
     phi: object = None           # Laplace coordinate of a valve (0 annulus, 1 free edge)
     #: total potential of the forms (strain and bending energy minus the pressure's
-    #: potential; point terms add theirs), whose derivative is ``residual`` where the
-    #: boundary is held: the solver's merit function (mvfem.solver.PseudoTransient)
+    #: potential; point terms add theirs), whose derivative is ``residual`` only where the
+    #: whole boundary is held (a clamped disk): on leaflets with free edges the pressure has
+    #: no potential, and the solver's merit is ``energy`` with the pressure's work
+    #: integrated along each update (mvfem.solver.SNESProblem.load_work)
     potential: ufl.core.expr.Expr | None = None
     ties: object = None          # mvfem.ties.Ties (clips, sutures)
     #: prescribed motion (annulus target, ring, papillary target, ties drawn tight):

@@ -153,6 +153,68 @@ def test_potential_is_the_residuals_primitive(follower):
     assert abs(fd - F.dot(w.vector)) < 1e-6 * abs(F.dot(w.vector))
 
 
+def test_merit_change_is_the_work_of_the_residual_on_a_valve():
+    """The pseudo-time end game judges an update by the change of its merit: the change of the
+    strain, bending, chordae and contact energies minus the pressure's work along the update
+    (``SNESProblem.load_work``, Simpson's rule). On the valve, whose leaflets have free edges,
+    that must be the work of the residual along the update, integrated here by 48-point
+    Gauss-Legendre on four sub-intervals; ``-p`` x the swept volume (``Model.potential``) is
+    not: its derivative misses a free-edge term as large as the load (checked on the state
+    the change starts from)."""
+    import ufl
+    from dolfinx import fem
+    from dolfinx.fem import petsc as fpetsc
+    from petsc4py import PETSc
+
+    from mvfem.model import build_model
+    from mvfem.scene import load_scene
+    from mvfem.solver import SNESProblem
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    m = build_model(scene.with_changes({"mesh.size": 5.0}), MPI.COMM_WORLD)
+    m.pressure.value = m.p_target
+    pb = SNESProblem(m.residual, m.u, m.bcs, prefix="merit_test_",
+                     point_terms=m.point_terms, potential=m.energy, load=m.load_form)
+    try:
+        X = m.V.tabulate_dof_coordinates()[:, :3]
+
+        def smooth(a, b, c):  # a displacement field smooth over the valve (mm)
+            return np.stack([a * np.sin(0.2 * X[:, 1]), b * np.cos(0.15 * X[:, 0]),
+                             c * np.sin(0.1 * (X[:, 0] + X[:, 1]))], axis=1).ravel()
+        x, y = pb.u.vector.copy(), pb.u.vector.copy()
+        x.array[:] = smooth(0.2, -0.1, 0.5)[: x.array.size]
+        y.array[:] = x.array + smooth(-0.15, 0.2, 0.3)[: y.array.size]
+        for v in (x, y):
+            fpetsc.set_bc(v, m.bcs, scale=0.0)
+        d = y.copy()
+        d.axpy(-1.0, x)
+        change = pb.evaluate_energy(y) - pb.evaluate_energy(x) - pb.load_work(x, y)
+        g, w = np.polynomial.legendre.leggauss(48)
+        work, z = 0.0, x.copy()
+        for part in range(4):
+            for gi, wi in zip(g, w):
+                s = (part + 0.5 * (gi + 1)) / 4
+                x.copy(z)
+                z.axpy(s, d)
+                pb.evaluate_residual(z)
+                work += wi / 8 * pb.b.dot(d)
+        assert abs(change - work) < 1e-8 * abs(work)
+        # the swept-volume potential's derivative against the residual, on the free dofs
+        pb._update_u(x)
+        free = fem.Function(m.V)
+        free.x.array[:] = 1.0
+        fpetsc.set_bc(free.vector, m.bcs, scale=0.0)
+        dPi = fpetsc.assemble_vector(fem.form(ufl.derivative(m.potential, m.u,
+                                                             ufl.TestFunction(m.V))))
+        F = fpetsc.assemble_vector(fem.form(m.residual))
+        for b in (dPi, F):
+            b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            b.pointwiseMult(b, free.vector)
+        assert (dPi - F).norm() > 0.1 * F.norm()
+    finally:
+        pb.destroy()
+
+
 @pytest.mark.parametrize("method", ["load-steps", "pseudo-time"])
 def test_zero_pressure_without_motion_stays_at_rest(tmp_path, capsys, method):
     """No pressure and no prescribed motion: the reference state is the equilibrium (u = 0,

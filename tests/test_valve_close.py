@@ -22,7 +22,7 @@ FLAIL = [{"leaflet": "posterior", "between": [0.2, 0.8], "rupture": True}]
 
 @pytest.fixture(scope="module")
 def dilated(tmp_path_factory) -> dict:
-    """The 50 % dilated valve's summary (one run of 10-15 min for the two tests using it)."""
+    """The 50 % dilated valve's summary (one run of ~2 min for the two tests using it)."""
     out = tmp_path_factory.mktemp("dilated") / "out"
     return mvfem.solve(SCENES / "valve_dilated.toml", out=out, progress=False).summary
 
@@ -70,18 +70,13 @@ def test_regurgitant_valves_show_an_orifice(case, tmp_path, request):
     """A prolapsing posterior segment (its chordae ruptured) and a 50 % dilated annulus both
     lose coaptation at A2-P2 and leak: a regurgitant orifice above 5 mm^2 (the healthy demo:
     0). The flail leaflet still overlaps the other seen from the atrium, so only the leak gap
-    across the coaptation line sees it. The dilated valve stops short of the tolerance (see
-    the xfail below): its last state, within 1e-3 of the load, is what is checked."""
+    across the coaptation line sees it."""
     if case == "flail":
         scene = mvfem.load_scene(DEMO).with_changes({"chordae.edit": FLAIL})
         s = mvfem.solve(scene, out=tmp_path / case, progress=False).summary
     else:
         s = request.getfixturevalue("dilated")
-    if case == "flail":
-        _closed(s)
-    else:
-        assert s["equilibrium_residual"] < 1e-3
-        assert s["max_penetration_mm"] == 0.0 and s["contact"]["intersections"] == 0
+    _closed(s)
     v = s["valve"]
     assert v["regurgitant_orifice_area_mm2"] > 5.0
     assert v["coaptation_length_mm"] < 3.0
@@ -91,7 +86,7 @@ def test_regurgitant_valves_show_an_orifice(case, tmp_path, request):
 
 @pytest.fixture(scope="module")
 def patient(tmp_path_factory) -> dict:
-    """The patient valve's summary (one run of ~10 min for the two tests using it)."""
+    """The patient valve's summary (one run of ~2 min for the two tests using it)."""
     out = tmp_path_factory.mktemp("patient") / "out"
     return mvfem.solve(SCENES / "valve_patient.toml", out=out, progress=False).summary
 
@@ -99,24 +94,23 @@ def patient(tmp_path_factory) -> dict:
 @pytest.mark.slow
 def test_valve_on_the_patient_annulus_closes(patient):
     """The valve built on shared/data/kaiser_normal1 (a patient's annulus and papillary tips)
-    closes: within 1e-4 of the load (it stops short of the tolerance, see the xfail below), no
-    interpenetration, orifice below 2 % of that annulus's area."""
+    closes: no interpenetration, orifice below 2 % of that annulus's area."""
     s = patient
-    assert s["equilibrium_residual"] < 1e-4
-    assert s["max_penetration_mm"] == 0.0 and s["contact"]["intersections"] == 0
+    _closed(s)
     v = s["valve"]
     assert v["regurgitant_orifice_area_mm2"] < 0.02 * v["annulus_area_mm2"]
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the 50 % dilated valve stalls at 3.1e-4 of the load "
-                   "after 1500 pseudo-time steps (README, The valve, Measured); XPASS once fixed")
 def test_dilated_valve_converges(dilated):
+    """It stalled at 3.1e-4 of the load after 1500 pseudo-time steps while the solver's merit
+    was -p x the swept volume, which is not the pressure's potential on free-edged leaflets
+    (converged in 350 steps with the pressure's work integrated instead)."""
     _closed(dilated)
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the patient valve stalls at 4.9e-5 of the load after "
-                   "1500 pseudo-time steps (README, The valve, Measured); XPASS once fixed")
 def test_patient_valve_converges(patient):
+    """It stalled at 4.9e-5 of the load after 1500 steps with the swept-volume merit (375
+    steps with the pressure's work integrated)."""
     _closed(patient)
