@@ -5,7 +5,9 @@ Newton step, the distance, its gradient and the curvature of the distance by cen
 differences of the exact gradient (24 gradient evaluations per pair). In numpy these small
 fixed-size computations cost most of a valve closure (46 of 97 s of the demo); here they are
 plain C loops, compiled once with the system's C compiler into ``~/.cache/mvfem`` (or
-``$MVFEM_CACHE``) and loaded with cffi, as FFCx does for the forms. Where no compiler is
+``$MVFEM_CACHE``) and loaded with cffi, as FFCx does for the forms. The pair search's narrow
+phase is here too: distances over candidate pairs given by node indices
+(:func:`point_triangle_distance`, :func:`segment_distance`). Where no compiler is
 available the numpy versions in :mod:`mvfem.contact` are used (same formulas, checked
 against each other in ``tests/test_valve_terms.py``).
 """
@@ -23,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["load", "point_triangle_gradient", "point_triangle_hessian", "edge_edge_energy",
-           "edge_edge_hessian"]
+           "edge_edge_hessian", "point_triangle_distance", "segment_distance"]
 
 log = logging.getLogger(__name__)
 
@@ -34,10 +36,15 @@ void ee_energy(long m, const double *y, const double *w, const double *eps, doub
                double *E, double *g, double *d);
 void ee_hess(long m, const double *y, const double *w, const double *eps, double delta,
              double rel, double *H);
+void pt_dist(long m, const double *x, const int64_t *cells, const int64_t *s, const int64_t *t,
+             double *d);
+void ee_dist(long m, const double *x, const int64_t *edges, const int64_t *i, const int64_t *j,
+             double *d);
 """
 
 _SOURCE = r"""
 #include <math.h>
+#include <stdint.h>
 #include <string.h>
 
 static double dot3(const double *a, const double *b) { return a[0]*b[0] + a[1]*b[1] + a[2]*b[2]; }
@@ -283,6 +290,28 @@ void ee_hess(long m, const double *y, const double *w, const double *eps, double
     symmetrise12(h);
   }
 }
+
+/* distances of nodes x[s[k]] to triangles cells[t[k]] (positions x (n, 3), cells (c, 3)):
+   the narrow phase of the candidate lists, reading the positions through the indices (a numpy
+   gather of the pairs' coordinates cost as much as the distances) */
+void pt_dist(long m, const double *x, const int64_t *cells, const int64_t *s, const int64_t *t,
+             double *d) {
+  double bary[3];
+  for (long k = 0; k < m; k++) {
+    const int64_t *c = cells + 3 * t[k];
+    d[k] = closest_tri(x + 3 * s[k], x + 3 * c[0], x + 3 * c[1], x + 3 * c[2], bary);
+  }
+}
+
+/* distances of the segments edges[i[k]] and edges[j[k]] (edges (e, 2) node indices) */
+void ee_dist(long m, const double *x, const int64_t *edges, const int64_t *i, const int64_t *j,
+             double *d) {
+  double s, t;
+  for (long k = 0; k < m; k++) {
+    const int64_t *a = edges + 2 * i[k], *b = edges + 2 * j[k];
+    d[k] = seg_closest(x + 3 * a[0], x + 3 * a[1], x + 3 * b[0], x + 3 * b[1], &s, &t);
+  }
+}
 """
 
 _lib = None
@@ -372,3 +401,39 @@ def edge_edge_hessian(y, weight, eps_x, delta: float, rel: float = 1e-4) -> np.n
     H = np.empty((m, 12, 12))
     lib.ee_hess(m, _ptr(ffi, y), _ptr(ffi, w), _ptr(ffi, e), float(delta), rel, _ptr(ffi, H))
     return H
+
+
+def _index(ffi, a: np.ndarray):
+    return ffi.cast("int64_t *", ffi.from_buffer(a))
+
+
+def point_triangle_distance(x: np.ndarray, cells: np.ndarray, s: np.ndarray,
+                            t: np.ndarray) -> np.ndarray:
+    """(m,) distances of the nodes ``x[s]`` to the triangles ``cells[t]`` ((c, 3) node
+    indices) at positions ``x`` (n, 3)."""
+    ffi, lib = load()
+    x, cells, s, t = _f64(x), _i64(cells), _i64(s), _i64(t)
+    d = np.empty(len(s))
+    lib.pt_dist(len(s), _ptr(ffi, x), _index(ffi, cells), _index(ffi, s), _index(ffi, t),
+                _ptr(ffi, d))
+    return d
+
+
+def segment_distance(x: np.ndarray, edges: np.ndarray, i: np.ndarray,
+                     j: np.ndarray) -> np.ndarray:
+    """(m,) distances of the segments ``edges[i]`` and ``edges[j]`` ((e, 2) node indices) at
+    positions ``x`` (n, 3)."""
+    ffi, lib = load()
+    x, edges, i, j = _f64(x), _i64(edges), _i64(i), _i64(j)
+    d = np.empty(len(i))
+    lib.ee_dist(len(i), _ptr(ffi, x), _index(ffi, edges), _index(ffi, i), _index(ffi, j),
+                _ptr(ffi, d))
+    return d
+
+
+def _f64(a):
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _i64(a):
+    return np.ascontiguousarray(a, dtype=np.int64)

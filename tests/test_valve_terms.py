@@ -677,7 +677,8 @@ def test_step_limit_stops_a_free_edge_sliding_through_another():
 
 def test_compiled_contact_kernels_match_numpy():
     """The C kernels (mvfem.kernels) and the numpy formulas give the same distances,
-    gradients and curvatures, in the face, edge and vertex regions and for edge pairs."""
+    gradients and curvatures, in the face, edge and vertex regions and for edge pairs, and
+    the same distances over pairs given by node indices (the candidate lists')."""
     from mvfem import contact, kernels
 
     if kernels.load() is None:
@@ -701,3 +702,17 @@ def test_compiled_contact_kernels_match_numpy():
     assert np.allclose(G0, G1, rtol=1e-9, atol=1e-10 * np.abs(G0).max())
     K0, K1 = contact._edge_edge_hessian_np(ye, w, eps, 0.5), kernels.edge_edge_hessian(ye, w, eps, 0.5)
     assert np.allclose(K0, K1, rtol=1e-5, atol=1e-6 * np.abs(K0).max())
+    # the candidate lists' distances, read through node indices
+    x = rng.normal(size=(50, 3))
+    cells = rng.permuted(np.tile(np.arange(50), (30, 1)), axis=1)[:, :3]
+    s, t = rng.integers(0, 50, m), rng.integers(0, 30, m)
+    d = kernels.point_triangle_distance(x, cells, s, t)
+    tri = cells[t]
+    assert np.allclose(d, closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]],
+                                                     x[tri[:, 2]])[0], rtol=1e-13, atol=1e-14)
+    edges = cells[:, :2]
+    i, j = rng.integers(0, 30, m), rng.integers(0, 30, m)
+    d = kernels.segment_distance(x, edges, i, j)
+    assert np.allclose(d, contact.segment_distance(x[edges[i, 0]], x[edges[i, 1]],
+                                                   x[edges[j, 0]], x[edges[j, 1]]),
+                       rtol=1e-13, atol=1e-14)
