@@ -870,6 +870,47 @@ def test_contact_step_limit_on_the_lists_is_the_swept_search(valve_view, monkeyp
     assert cached.list_builds == 1
 
 
+def test_first_root_takes_the_sub_intervals_in_order():
+    """The batched root search gives each cubic the root of its first sub-interval with a
+    sign change where ``touching`` holds, as trying the sub-intervals one at a time does
+    (cubics with three roots in [0, 1]; touching refused at some roots)."""
+    from mvfem.contact import _first_root
+
+    rng = np.random.default_rng(5)
+    m, samples = 400, 16
+    roots = np.sort(rng.uniform(0, 1, (m, 3)), axis=1)
+    coef = np.stack([-roots.prod(axis=1), roots[:, 0] * roots[:, 1] + roots[:, 1] * roots[:, 2]
+                     + roots[:, 0] * roots[:, 2], -roots.sum(axis=1), np.ones(m)], axis=1)
+    coef *= rng.choice([-1.0, 1.0], m)[:, None]
+    lo = rng.uniform(0, 1, m)                   # touching only from this t on
+
+    def touching(idx, t):
+        return t >= lo[idx]
+
+    got = _first_root(coef, touching, samples)
+    grid = np.linspace(0.0, 1.0, samples + 1)
+    want = np.full(m, np.inf)
+    for r in range(m):
+        f = lambda t: coef[r, 0] + t * (coef[r, 1] + t * (coef[r, 2] + t * coef[r, 3]))  # noqa: E731
+        for i in range(samples):
+            fa, fb = f(grid[i]), f(grid[i + 1])
+            if not (fa * fb <= 0 and fa != 0):
+                continue
+            a, b = grid[i], grid[i + 1]
+            for _ in range(40):
+                mid = 0.5 * (a + b)
+                fm = f(mid)
+                if fa * fm <= 0:
+                    b = mid
+                else:
+                    a, fa = mid, fm
+            if a >= lo[r]:
+                want[r] = a
+                break
+    assert np.array_equal(got, want)
+    assert np.isfinite(got).sum() > 100 and np.isinf(got).sum() > 20
+
+
 def test_admissible_edges_look_up_is_the_definition(valve_view):
     """The look-up of excluded edge pairs gives, over every pair of the valve's edges, what
     the definition does: a shared vertex or reference midpoints within ``exclusion``."""
