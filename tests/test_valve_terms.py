@@ -926,3 +926,50 @@ def test_admissible_edges_look_up_is_the_definition(valve_view):
     assert np.array_equal(c._admissible_edges(j, i), ~(shared | near))
     assert not c._admissible_edges(i[:5], i[:5]).any()
 
+
+
+def test_point_terms_jacobian_is_the_sum_of_the_free_entries_of_the_blocks():
+    """add_jacobian adds to the matrix the blocks' stiffness summed over its free dofs, and no
+    other entries: against a dense sum, with 4-node and 1-node blocks, nodes repeated across
+    blocks, and nodes with all, two or one of their dofs fixed."""
+    from types import SimpleNamespace
+
+    from mpi4py import MPI
+    from petsc4py import PETSc
+    from scipy import sparse
+
+    from mvfem.nodal import PointTerms
+
+    rng = np.random.default_rng(2)
+    N = 30
+    free = np.ones((N, 3), dtype=bool)
+    free[3] = False
+    free[5, 1:] = False
+    free[7, 2] = False
+    four = np.array([rng.choice(N, 4, replace=False) for _ in range(80)])
+    one = rng.integers(0, N, (15, 1))
+    blocks = [Blocks(four, np.zeros((80, 4, 3)), rng.normal(size=(80, 12, 12))),
+              Blocks(one, np.zeros((15, 1, 3)), rng.normal(size=(15, 3, 3))),
+              Blocks(np.zeros((0, 4), dtype=np.int64), np.zeros((0, 4, 3)), np.zeros((0, 12, 12)))]
+    terms = PointTerms(SimpleNamespace(X=np.zeros((N, 3)), free=free), [])
+    terms.evaluate = lambda x: blocks
+    A = PETSc.Mat().createAIJ([3 * N, 3 * N], bsize=3, comm=MPI.COMM_SELF)
+    A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+    A.setUp()
+    for d in range(3 * N):        # the forms' part: a diagonal
+        A.setValue(d, d, 1.0)
+    A.assemble()
+    terms.add_jacobian(PETSc.Vec().createSeq(3 * N), A)
+    ref = np.eye(3 * N)
+    touched = np.eye(3 * N, dtype=bool)
+    fdof = free.ravel()
+    for blk in blocks:
+        for nd, K in zip(blk.nodes, blk.stiffness):
+            dofs = (3 * nd[:, None] + np.arange(3)).ravel()
+            ok = fdof[dofs]
+            ref[np.ix_(dofs[ok], dofs[ok])] += K[np.ix_(ok, ok)]
+            touched[np.ix_(dofs[ok], dofs[ok])] = True
+    got = sparse.csr_matrix(A.getValuesCSR()[::-1], shape=(3 * N, 3 * N))
+    assert np.array_equal(got.toarray() != 0, touched)
+    assert got.nnz == touched.sum()
+    assert np.allclose(got.toarray(), ref, rtol=1e-14, atol=1e-14 * np.abs(ref).max())
