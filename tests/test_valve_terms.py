@@ -928,16 +928,18 @@ def test_admissible_edges_look_up_is_the_definition(valve_view):
 
 
 
-def test_point_terms_jacobian_is_the_sum_of_the_free_entries_of_the_blocks():
+def test_point_terms_jacobian_is_the_sum_of_the_free_entries_of_the_blocks(monkeypatch):
     """add_jacobian adds to the matrix the blocks' stiffness summed over its free dofs, and no
     other entries: against a dense sum, with 4-node and 1-node blocks, nodes repeated across
-    blocks, and nodes with all, two or one of their dofs fixed."""
+    blocks, and nodes with all, two or one of their dofs fixed; the compiled rows are the
+    numpy ones bit for bit."""
     from types import SimpleNamespace
 
     from mpi4py import MPI
     from petsc4py import PETSc
     from scipy import sparse
 
+    from mvfem import kernels
     from mvfem.nodal import PointTerms
 
     rng = np.random.default_rng(2)
@@ -973,3 +975,10 @@ def test_point_terms_jacobian_is_the_sum_of_the_free_entries_of_the_blocks():
     assert np.array_equal(got.toarray() != 0, touched)
     assert got.nnz == touched.sum()
     assert np.allclose(got.toarray(), ref, rtol=1e-14, atol=1e-14 * np.abs(ref).max())
+    # compiled and numpy: the same sums in the same order
+    if kernels.load() is None:
+        pytest.fail("the contact kernels did not compile (a C compiler is part of make setup)")
+    compiled = terms._stiffness_csr(blocks)
+    monkeypatch.setattr(kernels, "load", lambda: None)
+    for a, b in zip(compiled, terms._stiffness_csr(blocks)):
+        assert np.array_equal(a, b)
