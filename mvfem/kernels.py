@@ -514,7 +514,7 @@ def blocks_csr(N: int, free: np.ndarray, r: np.ndarray, c: np.ndarray, off: np.n
     work = np.empty(4 * N + 1 + n, dtype=np.int64)
     acc = np.empty(9 * N)
     nnz = lib.blocks_csr(n, N, _index(ffi, r), _index(ffi, c), _index(ffi, off),
-                         _index(ffi, stride), _ptr(ffi, K), ffi.cast("uint8_t *", ffi.from_buffer(fr)),
-                         _index(ffi, indptr), _index(ffi, cols), _ptr(ffi, vals),
-                         _index(ffi, work), _ptr(ffi, acc))
+                         _index(ffi, stride), _ptr(ffi, K),
+                         ffi.cast("uint8_t *", ffi.from_buffer(fr)), _index(ffi, indptr),
+                         _index(ffi, cols), _ptr(ffi, vals), _index(ffi, work), _ptr(ffi, acc))
     return indptr, cols[:nnz], vals[:nnz]

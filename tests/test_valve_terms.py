@@ -765,11 +765,11 @@ def _same_blocks(a, b):
 @pytest.mark.parametrize("compiled", [True, False])
 def test_contact_lists_find_the_pairs_of_a_full_search(valve_view, compiled, monkeypatch):
     """The leaflets of the closing valve squeezed together in small steps reuse one list build
-    (no node moves half the 1 mm skin); a jump of 1.1 mm builds anew, and stepping back finds the first build still valid
-    (two are kept). At every state the pairs, distances and closest points, and so the blocks,
-    are bit for bit those of the full search at every call (skin 0), compiled distance
-    prefilter or numpy; and the full search's pairs are those of a brute force over every
-    admissible node-triangle and edge pair."""
+    (no node moves half the 1 mm skin); a jump of 1.1 mm builds anew, and stepping back finds
+    the first build still valid (two are kept). At every state the pairs, distances and
+    closest points, and so the blocks, are bit for bit those of the full search at every call
+    (skin 0), compiled distance prefilter or numpy; and the full search's pairs are those of a
+    brute force over every admissible node-triangle and edge pair."""
     from mvfem import kernels
     from mvfem.contact import Contact, segment_distance
 
@@ -820,8 +820,9 @@ def test_contact_step_limit_on_the_lists_is_the_swept_search(valve_view, monkeyp
     """The step limit from the lists equals the swept search's, bit for bit: on the closing
     valve's steps, on random small updates, on updates pushing the closest node of each of a
     few pairs 2.5 times its distance through its triangle and on updates bringing pairs 1 mm
-    apart through each other (cut short: alpha < 1, found on the lists), and on an update of 1.5 mm through the other leaflet (beyond the lists: the
-    swept search, for both; cut short too)."""
+    apart through each other (cut short: alpha < 1, found on the lists), and on an update of
+    1.5 mm through the other leaflet (beyond the lists: the swept search, for both; cut short
+    too)."""
     from mvfem import contact
     from mvfem.contact import Contact
 
@@ -891,7 +892,9 @@ def test_first_root_takes_the_sub_intervals_in_order():
     grid = np.linspace(0.0, 1.0, samples + 1)
     want = np.full(m, np.inf)
     for r in range(m):
-        f = lambda t: coef[r, 0] + t * (coef[r, 1] + t * (coef[r, 2] + t * coef[r, 3]))  # noqa: E731
+        def f(t, c=coef[r]):
+            return c[0] + t * (c[1] + t * (c[2] + t * c[3]))
+
         for i in range(samples):
             fa, fb = f(grid[i]), f(grid[i + 1])
             if not (fa * fb <= 0 and fa != 0):
