@@ -5,7 +5,10 @@ Newton step, the distance, its gradient and the curvature of the distance by cen
 differences of the exact gradient (24 gradient evaluations per pair). In numpy these small
 fixed-size computations cost most of a valve closure (46 of 97 s of the demo); here they are
 plain C loops, compiled once with the system's C compiler into ``~/.cache/mvfem`` (or
-``$MVFEM_CACHE``) and loaded with cffi, as FFCx does for the forms. Where no compiler is
+``$MVFEM_CACHE``) and loaded with cffi, as FFCx does for the forms. The pair search's narrow
+phase is here too: distances over candidate pairs given by node indices
+(:func:`point_triangle_distance`, :func:`segment_distance`), and the rows of the point terms'
+tangent (:func:`blocks_csr`). Where no compiler is
 available the numpy versions in :mod:`mvfem.contact` are used (same formulas, checked
 against each other in ``tests/test_valve_terms.py``).
 """
@@ -23,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["load", "point_triangle_gradient", "point_triangle_hessian", "edge_edge_energy",
-           "edge_edge_hessian"]
+           "edge_edge_hessian", "point_triangle_distance", "segment_distance", "blocks_csr"]
 
 log = logging.getLogger(__name__)
 
@@ -34,10 +37,18 @@ void ee_energy(long m, const double *y, const double *w, const double *eps, doub
                double *E, double *g, double *d);
 void ee_hess(long m, const double *y, const double *w, const double *eps, double delta,
              double rel, double *H);
+void pt_dist(long m, const double *x, const int64_t *cells, const int64_t *s, const int64_t *t,
+             double *d);
+void ee_dist(long m, const double *x, const int64_t *edges, const int64_t *i, const int64_t *j,
+             double *d);
+long blocks_csr(long n, long N, const int64_t *r, const int64_t *c, const int64_t *off,
+                const int64_t *stride, const double *K, const uint8_t *free, int64_t *indptr,
+                int64_t *cols, double *vals, int64_t *work, double *acc);
 """
 
 _SOURCE = r"""
 #include <math.h>
+#include <stdint.h>
 #include <string.h>
 
 static double dot3(const double *a, const double *b) { return a[0]*b[0] + a[1]*b[1] + a[2]*b[2]; }
@@ -283,6 +294,84 @@ void ee_hess(long m, const double *y, const double *w, const double *eps, double
     symmetrise12(h);
   }
 }
+
+/* distances of nodes x[s[k]] to triangles cells[t[k]] (positions x (n, 3), cells (c, 3)):
+   the narrow phase of the candidate lists, reading the positions through the indices (a numpy
+   gather of the pairs' coordinates cost as much as the distances) */
+void pt_dist(long m, const double *x, const int64_t *cells, const int64_t *s, const int64_t *t,
+             double *d) {
+  double bary[3];
+  for (long k = 0; k < m; k++) {
+    const int64_t *c = cells + 3 * t[k];
+    d[k] = closest_tri(x + 3 * s[k], x + 3 * c[0], x + 3 * c[1], x + 3 * c[2], bary);
+  }
+}
+
+/* distances of the segments edges[i[k]] and edges[j[k]] (edges (e, 2) node indices) */
+void ee_dist(long m, const double *x, const int64_t *edges, const int64_t *i, const int64_t *j,
+             double *d) {
+  double s, t;
+  for (long k = 0; k < m; k++) {
+    const int64_t *a = edges + 2 * i[k], *b = edges + 2 * j[k];
+    d[k] = seg_closest(x + 3 * a[0], x + 3 * a[1], x + 3 * b[0], x + 3 * b[1], &s, &t);
+  }
+}
+
+/* The point terms' tangent as CSR rows (3 N of them, the free dofs' entries only, columns
+   sorted): the sum of n 3 x 3 blocks, block q at node row r[q] and node column c[q] with
+   entry (i, j) at K[off[q] + i stride[q] + j]. A block whose row or column node has no free
+   dof is skipped; each entry sums its blocks in the order of q (as the numpy version in
+   mvfem.nodal does). work: 4 N + 1 + n integers, acc: 9 N doubles. Returns the entries. */
+long blocks_csr(long n, long N, const int64_t *r, const int64_t *c, const int64_t *off,
+                const int64_t *stride, const double *K, const uint8_t *free, int64_t *indptr,
+                int64_t *cols, double *vals, int64_t *work, double *acc) {
+  int64_t *start = work, *bucket = work + N + 1, *mark = bucket + n, *slot = mark + N;
+  int64_t *list = slot + N;
+#define SOME(v) (free[3 * (v)] | free[3 * (v) + 1] | free[3 * (v) + 2])
+  for (long v = 0; v <= N; v++) start[v] = 0;
+  for (long q = 0; q < n; q++)
+    if (SOME(r[q]) && SOME(c[q])) start[r[q] + 1]++;
+  for (long v = 0; v < N; v++) { start[v + 1] += start[v]; mark[v] = start[v]; }
+  for (long q = 0; q < n; q++)        /* each row's blocks, in the order of q */
+    if (SOME(r[q]) && SOME(c[q])) bucket[mark[r[q]]++] = q;
+  for (long v = 0; v < N; v++) mark[v] = -1;
+  long nnz = 0;
+  indptr[0] = 0;
+  for (long v = 0; v < N; v++) {
+    long nc = 0;
+    for (int64_t p = start[v]; p < start[v + 1]; p++) {
+      int64_t w = c[bucket[p]];
+      if (mark[w] != v) { mark[w] = v; list[nc++] = w; }
+    }
+    for (long a = 1; a < nc; a++) {   /* the row's column nodes, sorted (tens of them) */
+      int64_t w = list[a];
+      long b = a - 1;
+      while (b >= 0 && list[b] > w) { list[b + 1] = list[b]; b--; }
+      list[b + 1] = w;
+    }
+    for (long a = 0; a < nc; a++) slot[list[a]] = a;
+    for (long a = 0; a < 9 * nc; a++) acc[a] = 0.0;
+    for (int64_t p = start[v]; p < start[v + 1]; p++) {
+      int64_t q = bucket[p];
+      double *to = acc + 9 * slot[c[q]];
+      const double *from = K + off[q];
+      for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) to[3 * i + j] += from[i * stride[q] + j];
+    }
+    for (int i = 0; i < 3; i++) {
+      if (free[3 * v + i])
+        for (long a = 0; a < nc; a++)
+          for (int j = 0; j < 3; j++)
+            if (free[3 * list[a] + j]) {
+              cols[nnz] = 3 * list[a] + j;
+              vals[nnz++] = acc[9 * a + 3 * i + j];
+            }
+      indptr[3 * v + i + 1] = nnz;
+    }
+  }
+#undef SOME
+  return nnz;
+}
 """
 
 _lib = None
@@ -372,3 +461,60 @@ def edge_edge_hessian(y, weight, eps_x, delta: float, rel: float = 1e-4) -> np.n
     H = np.empty((m, 12, 12))
     lib.ee_hess(m, _ptr(ffi, y), _ptr(ffi, w), _ptr(ffi, e), float(delta), rel, _ptr(ffi, H))
     return H
+
+
+def _index(ffi, a: np.ndarray):
+    return ffi.cast("int64_t *", ffi.from_buffer(a))
+
+
+def point_triangle_distance(x: np.ndarray, cells: np.ndarray, s: np.ndarray,
+                            t: np.ndarray) -> np.ndarray:
+    """(m,) distances of the nodes ``x[s]`` to the triangles ``cells[t]`` ((c, 3) node
+    indices) at positions ``x`` (n, 3)."""
+    ffi, lib = load()
+    x, cells, s, t = _f64(x), _i64(cells), _i64(s), _i64(t)
+    d = np.empty(len(s))
+    lib.pt_dist(len(s), _ptr(ffi, x), _index(ffi, cells), _index(ffi, s), _index(ffi, t),
+                _ptr(ffi, d))
+    return d
+
+
+def segment_distance(x: np.ndarray, edges: np.ndarray, i: np.ndarray,
+                     j: np.ndarray) -> np.ndarray:
+    """(m,) distances of the segments ``edges[i]`` and ``edges[j]`` ((e, 2) node indices) at
+    positions ``x`` (n, 3)."""
+    ffi, lib = load()
+    x, edges, i, j = _f64(x), _i64(edges), _i64(i), _i64(j)
+    d = np.empty(len(i))
+    lib.ee_dist(len(i), _ptr(ffi, x), _index(ffi, edges), _index(ffi, i), _index(ffi, j),
+                _ptr(ffi, d))
+    return d
+
+
+def _f64(a):
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _i64(a):
+    return np.ascontiguousarray(a, dtype=np.int64)
+
+
+def blocks_csr(N: int, free: np.ndarray, r: np.ndarray, c: np.ndarray, off: np.ndarray,
+               stride: np.ndarray, K: np.ndarray):
+    """(indptr, cols, vals) over 3 ``N`` rows of the sum of 3 x 3 blocks: block ``q`` at node
+    row ``r[q]``, node column ``c[q]``, entry (i, j) at ``K[off[q] + i stride[q] + j]`` of the
+    flat ``K``; the entries of dofs not ``free`` ((N, 3)) left out."""
+    ffi, lib = load()
+    r, c, off, stride, K = _i64(r), _i64(c), _i64(off), _i64(stride), _f64(K)
+    fr = np.ascontiguousarray(free, dtype=np.uint8)
+    n = len(r)
+    indptr = np.empty(3 * N + 1, dtype=np.int64)
+    cols = np.empty(9 * n, dtype=np.int64)
+    vals = np.empty(9 * n)
+    work = np.empty(4 * N + 1 + n, dtype=np.int64)
+    acc = np.empty(9 * N)
+    nnz = lib.blocks_csr(n, N, _index(ffi, r), _index(ffi, c), _index(ffi, off),
+                         _index(ffi, stride), _ptr(ffi, K),
+                         ffi.cast("uint8_t *", ffi.from_buffer(fr)), _index(ffi, indptr),
+                         _index(ffi, cols), _ptr(ffi, vals), _index(ffi, work), _ptr(ffi, acc))
+    return indptr, cols[:nnz], vals[:nnz]

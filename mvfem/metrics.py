@@ -50,7 +50,8 @@ ORIFICE_MIN_AREA = 0.5
 def _frame(annulus: np.ndarray, axis_hint: np.ndarray):
     """Centre, unit normal (oriented like ``axis_hint``) of the least-squares annulus plane."""
     c = annulus.mean(axis=0)
-    _, _, vt = np.linalg.svd(annulus - c)
+    # only V: the full U of the demo's 4000-point annulus curve cost 0.85 s of its 58 s
+    _, _, vt = np.linalg.svd(annulus - c, full_matrices=False)
     n = vt[2]
     if n @ axis_hint < 0:
         n = -n

@@ -677,7 +677,8 @@ def test_step_limit_stops_a_free_edge_sliding_through_another():
 
 def test_compiled_contact_kernels_match_numpy():
     """The C kernels (mvfem.kernels) and the numpy formulas give the same distances,
-    gradients and curvatures, in the face, edge and vertex regions and for edge pairs."""
+    gradients and curvatures, in the face, edge and vertex regions and for edge pairs, and
+    the same distances over pairs given by node indices (the candidate lists')."""
     from mvfem import contact, kernels
 
     if kernels.load() is None:
@@ -701,3 +702,286 @@ def test_compiled_contact_kernels_match_numpy():
     assert np.allclose(G0, G1, rtol=1e-9, atol=1e-10 * np.abs(G0).max())
     K0, K1 = contact._edge_edge_hessian_np(ye, w, eps, 0.5), kernels.edge_edge_hessian(ye, w, eps, 0.5)
     assert np.allclose(K0, K1, rtol=1e-5, atol=1e-6 * np.abs(K0).max())
+    # the candidate lists' distances, read through node indices
+    x = rng.normal(size=(50, 3))
+    cells = rng.permuted(np.tile(np.arange(50), (30, 1)), axis=1)[:, :3]
+    s, t = rng.integers(0, 50, m), rng.integers(0, 30, m)
+    d = kernels.point_triangle_distance(x, cells, s, t)
+    tri = cells[t]
+    assert np.allclose(d, closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]],
+                                                     x[tri[:, 2]])[0], rtol=1e-13, atol=1e-14)
+    edges = cells[:, :2]
+    i, j = rng.integers(0, 30, m), rng.integers(0, 30, m)
+    d = kernels.segment_distance(x, edges, i, j)
+    assert np.allclose(d, contact.segment_distance(x[edges[i, 0]], x[edges[i, 1]],
+                                                   x[edges[j, 0]], x[edges[j, 1]]),
+                       rtol=1e-13, atol=1e-14)
+
+
+# --- candidate lists (Verlet) against the full search ---------------------------------------
+
+
+@pytest.fixture(scope="module")
+def valve_view():
+    """The demo's valve on a 3 mm mesh with its annulus clamped, and a closing motion:
+    ``closing(s, squeeze)`` pulls every node toward the axis by ``s`` x (depth below the
+    annulus, relative)^0.7 of its distance from it, adds a fixed 0.05 mm noise (closest points
+    on faces, edges and vertices) and moves the leaflets toward each other along the
+    anteroposterior direction by ``squeeze`` x depth each, mm. With s = 0.3 the leaflets touch
+    from squeeze 5 mm (8 node-triangle pairs, 34 edge pairs) and cross from 5.9 mm."""
+    from dolfinx import fem
+    from mpi4py import MPI
+
+    from mvfem.meshes.valve import valve
+    from mvfem.nodal import NodalView
+
+    vm = valve(MPI.COMM_SELF, size=3.0, free_edge_size=1.5)
+    V = fem.VectorFunctionSpace(vm.mesh, ("CG", 1))
+    dofs = fem.locate_dofs_topological(V, 1, vm.facet_tags.find(vm.names["annulus"]))
+    bc = fem.dirichletbc(np.zeros(3), dofs, V)
+    view = NodalView(V, [bc], vm.cell_tags)
+    X = view.X
+    h = (X - vm.centre) @ vm.axis
+    radial = (X - vm.centre) - h[:, None] * vm.axis
+    depth = np.clip(h / h.min(), 0.0, 1.0)
+    noise = np.random.default_rng(7).normal(scale=0.05, size=X.shape)
+    noise[~view.free.all(axis=1)] = 0.0
+    side = np.zeros(len(X))
+    side[view.cells.ravel()] = np.repeat(np.where(view.cell_tag == 1, -1.0, 1.0), 3)
+    toward = depth[:, None] * side[:, None] * vm.frame[0]
+
+    def closing(s: float, squeeze: float = 0.0) -> np.ndarray:
+        return X - s * depth[:, None] ** 0.7 * radial + noise + squeeze * toward
+
+    yield view, closing   # (vm and V held: the view's communicator is the mesh's)
+
+
+def _same_blocks(a, b):
+    assert np.array_equal(a.nodes, b.nodes)
+    assert np.array_equal(a.force, b.force) and a.energy == b.energy
+    assert np.array_equal(a.stiffness, b.stiffness)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_contact_lists_find_the_pairs_of_a_full_search(valve_view, compiled, monkeypatch):
+    """The leaflets of the closing valve squeezed together in small steps reuse one list build
+    (no node moves half the 1 mm skin); a jump of 1.1 mm builds anew, and stepping back finds
+    the first build still valid (two are kept). At every state the pairs, distances and
+    closest points, and so the blocks, are bit for bit those of the full search at every call
+    (skin 0), compiled distance prefilter or numpy; and the full search's pairs are those of a
+    brute force over every admissible node-triangle and edge pair."""
+    from mvfem import kernels
+    from mvfem.contact import Contact, segment_distance
+
+    if not compiled:
+        monkeypatch.setattr(kernels, "load", lambda: None)
+    view, closing = valve_view
+    cached = Contact(view, 0.5, 3.2e4)
+    full = Contact(view, 0.5, 3.2e4, skin=0.0)
+    assert cached.skin == 1.0
+    # the leaflets squeezed 0.9 mm closer (each node moves up to 0.45 mm): pairs enter from
+    # nearly the lists' radius
+    steps = [(0.3, 5.1 + 0.05 * k) for k in range(10)]
+    builds, counts = [], []
+    for s, q in steps + [(0.3, 6.7), steps[-2]]:
+        x = closing(s, q)
+        for a, b in zip(cached.active_pairs(x), full.active_pairs(x)):
+            assert np.array_equal(a, b)
+        for a, b in zip(cached.edge_pairs(x), full.edge_pairs(x)):
+            assert np.array_equal(a, b)
+        _same_blocks(cached(x), full(x))
+        builds.append(cached.list_builds)
+        counts.append(len(full.active_pairs(x)[0]) + len(full.edge_pairs(x)[0]))
+    assert counts[9] > 3 * counts[0] and counts[10] > 200
+    assert builds == [1] * len(steps) + [2, 2]
+    assert np.linalg.norm(closing(*steps[-1]) - closing(*steps[0]), axis=1).max() < 0.5
+    assert np.linalg.norm(closing(0.3, 6.7) - closing(*steps[-1]), axis=1).max() > 1.0
+    assert full.list_builds == 0
+    # brute force where the leaflets cross
+    x = closing(0.3, 6.7)
+    cells, slaves = view.cells, cached.slaves
+    s = np.repeat(slaves, len(cells))
+    t = np.tile(np.arange(len(cells)), len(slaves))
+    ok = full._admissible(s, t)
+    s, t = s[ok], t[ok]
+    d = closest_point_on_triangles(x[s], *(x[cells[t, k]] for k in range(3)))[0]
+    got = full.active_pairs(x)
+    assert np.array_equal(got[0], s[d < 0.5]) and np.array_equal(got[1], t[d < 0.5])
+    e = full._edges
+    i, j = np.triu_indices(len(e), 1)
+    ok = full._admissible_edges(i, j)
+    i, j = i[ok], j[ok]
+    d = segment_distance(x[e[i, 0]], x[e[i, 1]], x[e[j, 0]], x[e[j, 1]])
+    got = full.edge_pairs(x)
+    assert np.array_equal(got[0], i[d < 0.5]) and np.array_equal(got[1], j[d < 0.5])
+
+
+def test_contact_step_limit_on_the_lists_is_the_swept_search(valve_view, monkeypatch):
+    """The step limit from the lists equals the swept search's, bit for bit: on the closing
+    valve's steps, on random small updates, on updates pushing the closest node of each of a
+    few pairs 2.5 times its distance through its triangle and on updates bringing pairs 1 mm
+    apart through each other (cut short: alpha < 1, found on the lists), and on an update of
+    1.5 mm through the other leaflet (beyond the lists: the swept search, for both; cut short
+    too)."""
+    from mvfem import contact
+    from mvfem.contact import Contact
+
+    view, closing = valve_view
+    cached = Contact(view, 0.5, 3.2e4)
+    full = Contact(view, 0.5, 3.2e4, skin=0.0)
+    swept = []
+    real = contact._swept_pairs
+    monkeypatch.setattr(contact, "_swept_pairs", lambda *a: swept.append(1) or real(*a))
+    rng = np.random.default_rng(3)
+    x = closing(0.3, 5.5)
+    free = view.free.all(axis=1)[:, None]
+    updates = [closing(0.3, 5.55) - x, closing(0.3, 5.6) - x, closing(0.3, 7.0) - x]
+    updates += [0.05 * rng.normal(size=x.shape) * free for _ in range(3)]
+    ps, pt, _, pd = full.active_pairs(x)
+    for k in np.argsort(pd)[:5]:
+        dx = np.zeros_like(x)
+        q = closest_point_on_triangles(x[ps[k]][None], *(x[view.cells[pt[k], m]][None]
+                                                           for m in range(3)))[1]
+        foot = q[0] @ x[view.cells[pt[k]]]
+        dx[ps[k]] = 2.5 * (foot - x[ps[k]])
+        updates.append(dx)
+    # pairs about 1 mm apart brought through each other: node and triangle each move 0.6 mm,
+    # still on the lists (2 x 0.6 + tolerance < 1.5 mm)
+    ps, pt, pq, pd = full.active_pairs(x, within=1.1)
+    far = np.flatnonzero((pd > 0.9) & (pq.min(axis=1) > 0.1))[:3]
+    assert len(far) == 3
+    for k in far:
+        dx = np.zeros_like(x)
+        foot = pq[k] @ x[view.cells[pt[k]]]
+        unit = (foot - x[ps[k]]) / pd[k]
+        dx[ps[k]] = 0.6 * unit
+        dx[view.cells[pt[k]]] = -0.6 * unit
+        updates.append(dx)
+    alphas = []
+    for n, dx in enumerate(updates):
+        before = len(swept)
+        a = cached.step_limit(x, dx)
+        on_lists = len(swept) == before
+        assert a == full.step_limit(x, dx)
+        assert on_lists == (2 * np.linalg.norm(dx, axis=1).max() + cached._tol < 1.5)
+        alphas.append((a, on_lists))
+    assert not alphas[2][1] and alphas[2][0] < 1 and np.linalg.norm(updates[2], axis=1).max() > 1.4
+    assert any(a < 1 and on for a, on in alphas[6:11])
+    assert all(a < 1 and on for a, on in alphas[11:])
+    assert cached.list_builds == 1
+
+
+def test_first_root_takes_the_sub_intervals_in_order():
+    """The batched root search gives each cubic the root of its first sub-interval with a
+    sign change where ``touching`` holds, as trying the sub-intervals one at a time does
+    (cubics with three roots in [0, 1]; touching refused at some roots)."""
+    from mvfem.contact import _first_root
+
+    rng = np.random.default_rng(5)
+    m, samples = 400, 16
+    roots = np.sort(rng.uniform(0, 1, (m, 3)), axis=1)
+    coef = np.stack([-roots.prod(axis=1), roots[:, 0] * roots[:, 1] + roots[:, 1] * roots[:, 2]
+                     + roots[:, 0] * roots[:, 2], -roots.sum(axis=1), np.ones(m)], axis=1)
+    coef *= rng.choice([-1.0, 1.0], m)[:, None]
+    lo = rng.uniform(0, 1, m)                   # touching only from this t on
+
+    def touching(idx, t):
+        return t >= lo[idx]
+
+    got = _first_root(coef, touching, samples)
+    grid = np.linspace(0.0, 1.0, samples + 1)
+    want = np.full(m, np.inf)
+    for r in range(m):
+        def f(t, c=coef[r]):
+            return c[0] + t * (c[1] + t * (c[2] + t * c[3]))
+
+        for i in range(samples):
+            fa, fb = f(grid[i]), f(grid[i + 1])
+            if not (fa * fb <= 0 and fa != 0):
+                continue
+            a, b = grid[i], grid[i + 1]
+            for _ in range(40):
+                mid = 0.5 * (a + b)
+                fm = f(mid)
+                if fa * fm <= 0:
+                    b = mid
+                else:
+                    a, fa = mid, fm
+            if a >= lo[r]:
+                want[r] = a
+                break
+    assert np.array_equal(got, want)
+    assert np.isfinite(got).sum() > 100 and np.isinf(got).sum() > 20
+
+
+def test_admissible_edges_look_up_is_the_definition(valve_view):
+    """The look-up of excluded edge pairs gives, over every pair of the valve's edges, what
+    the definition does: a shared vertex or reference midpoints within ``exclusion``."""
+    from mvfem.contact import Contact
+
+    view, _ = valve_view
+    c = Contact(view, 0.5, 3.2e4)
+    e, mid = c._edges, c._edge_mid_ref
+    i, j = np.triu_indices(len(e), 1)
+    shared = np.any(e[i][:, :, None] == e[j][:, None, :], axis=(1, 2))
+    near = np.linalg.norm(mid[i] - mid[j], axis=1) <= c.exclusion
+    assert np.array_equal(c._admissible_edges(i, j), ~(shared | near))
+    assert np.array_equal(c._admissible_edges(j, i), ~(shared | near))
+    assert not c._admissible_edges(i[:5], i[:5]).any()
+
+
+
+def test_point_terms_jacobian_is_the_sum_of_the_free_entries_of_the_blocks(monkeypatch):
+    """add_jacobian adds to the matrix the blocks' stiffness summed over its free dofs, and no
+    other entries: against a dense sum, with 4-node and 1-node blocks, nodes repeated across
+    blocks, and nodes with all, two or one of their dofs fixed; the compiled rows are the
+    numpy ones bit for bit."""
+    from types import SimpleNamespace
+
+    from mpi4py import MPI
+    from petsc4py import PETSc
+    from scipy import sparse
+
+    from mvfem import kernels
+    from mvfem.nodal import PointTerms
+
+    rng = np.random.default_rng(2)
+    N = 30
+    free = np.ones((N, 3), dtype=bool)
+    free[3] = False
+    free[5, 1:] = False
+    free[7, 2] = False
+    four = np.array([rng.choice(N, 4, replace=False) for _ in range(80)])
+    one = rng.integers(0, N, (15, 1))
+    blocks = [Blocks(four, np.zeros((80, 4, 3)), rng.normal(size=(80, 12, 12))),
+              Blocks(one, np.zeros((15, 1, 3)), rng.normal(size=(15, 3, 3))),
+              Blocks(np.zeros((0, 4), dtype=np.int64), np.zeros((0, 4, 3)), np.zeros((0, 12, 12)))]
+    terms = PointTerms(SimpleNamespace(X=np.zeros((N, 3)), free=free), [])
+    terms.evaluate = lambda x: blocks
+    A = PETSc.Mat().createAIJ([3 * N, 3 * N], bsize=3, comm=MPI.COMM_SELF)
+    A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+    A.setUp()
+    for d in range(3 * N):        # the forms' part: a diagonal
+        A.setValue(d, d, 1.0)
+    A.assemble()
+    terms.add_jacobian(PETSc.Vec().createSeq(3 * N), A)
+    ref = np.eye(3 * N)
+    touched = np.eye(3 * N, dtype=bool)
+    fdof = free.ravel()
+    for blk in blocks:
+        for nd, K in zip(blk.nodes, blk.stiffness):
+            dofs = (3 * nd[:, None] + np.arange(3)).ravel()
+            ok = fdof[dofs]
+            ref[np.ix_(dofs[ok], dofs[ok])] += K[np.ix_(ok, ok)]
+            touched[np.ix_(dofs[ok], dofs[ok])] = True
+    got = sparse.csr_matrix(A.getValuesCSR()[::-1], shape=(3 * N, 3 * N))
+    assert np.array_equal(got.toarray() != 0, touched)
+    assert got.nnz == touched.sum()
+    assert np.allclose(got.toarray(), ref, rtol=1e-14, atol=1e-14 * np.abs(ref).max())
+    # compiled and numpy: the same sums in the same order
+    if kernels.load() is None:
+        pytest.fail("the contact kernels did not compile (a C compiler is part of make setup)")
+    compiled = terms._stiffness_csr(blocks)
+    monkeypatch.setattr(kernels, "load", lambda: None)
+    for a, b in zip(compiled, terms._stiffness_csr(blocks)):
+        assert np.array_equal(a, b)
