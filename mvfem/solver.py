@@ -265,8 +265,8 @@ class SNESProblem:
         integrand cubic in ``s``) and a dead load. A follower pressure on a surface with free
         edges (a valve's leaflets) is not conservative: ``-p`` x the swept volume differs in
         its derivative from the load by a free-edge term, on the demo valve at rest as large
-        as the load itself (8.1e5 against 8.5e5 in norm), and as a merit it stalled the
-        pseudo-time end game at 2.5 % of the load."""
+        as the load itself (8.1e5 against 8.5e5 in norm), and as the merit it stopped the
+        dilated and the patient valves short of equilibrium (README, Solving)."""
         from dolfinx.fem import petsc as fpetsc
 
         if self.P is None:
