@@ -14,6 +14,10 @@ edge (signed about the deformed edge tangent), ``theta_0`` the same in the open 
 ``(D/2) kappa^2`` per area with curvature ``kappa = (theta - theta_0)/h_e``. ``cos`` of the
 difference is expanded in the sines and cosines of the two angles, which are invariant under
 rigid rotations, so no ``atan2`` is needed.
+
+On P1 meshes the model uses the same energy as a compiled point term (:mod:`mvfem.hinges`),
+checked against this form in ``tests/test_valve_terms.py``: differentiated twice by UFL over
+interior facets it took 14 of the 20-27 ms of one tangent assembly of the demo valve.
 """
 
 from __future__ import annotations

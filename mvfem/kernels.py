@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["load", "point_triangle_gradient", "point_triangle_hessian", "edge_edge_energy",
-           "edge_edge_hessian", "point_triangle_distance", "segment_distance", "blocks_csr"]
+           "edge_edge_hessian", "point_triangle_distance", "segment_distance", "blocks_csr",
+           "hinge_cos_sin", "hinge_energy", "hinge_hessian", "hinge_hessian_add"]
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,13 @@ void pt_dist(long m, const double *x, const int64_t *cells, const int64_t *s, co
              double *d);
 void ee_dist(long m, const double *x, const int64_t *edges, const int64_t *i, const int64_t *j,
              double *d);
+void hinge_cos_sin(long m, const double *y, double *c, double *s);
+void hinge_energy(long m, const double *y, const double *c0, const double *s0,
+                  const double *k, double *E, double *g);
+void hinge_hess(long m, const double *y, const double *c0, const double *s0, const double *k,
+                double rel, double *H);
+void hinge_hess_add(long m, const double *y, const double *c0, const double *s0,
+                    const double *k, double rel, const int64_t *place, double *vals);
 long blocks_csr(long n, long N, const int64_t *r, const int64_t *c, const int64_t *off,
                 const int64_t *stride, const double *K, const uint8_t *free, int64_t *indptr,
                 int64_t *cols, double *vals, int64_t *work, double *acc);
@@ -317,6 +325,94 @@ void ee_dist(long m, const double *x, const int64_t *edges, const int64_t *i, co
   }
 }
 
+/* The dihedral angle of a hinge y = (c, d, a, b) (12 doubles): the edge from a to b, c the
+   third node of one triangle and d of the other. With the normals N1 = (c - a) x (c - b),
+   N2 = (d - b) x (d - a) (parallel in a flat hinge, whatever the cells' orientation), the angle
+   is atan2((n1 x n2) . e, n1 . n2), e the unit edge; its cosine and sine, and (g not NULL) its
+   gradient: -|E| Ni / |Ni|^2 at the opposite nodes, and at the edge nodes the combinations of
+   Bridson et al. (2003), whose sign convention is the opposite of this angle's. */
+static void hinge_angle(const double *y, double *cs, double *sn, double *g) {
+  const double *c = y, *d = y + 3, *a = y + 6, *b = y + 9;
+  double E[3], ca[3], cb[3], db[3], da[3], N1[3], N2[3], n12[3];
+  sub3(b, a, E); sub3(c, a, ca); sub3(c, b, cb); sub3(d, b, db); sub3(d, a, da);
+  cross3(ca, cb, N1); cross3(db, da, N2);
+  double L2 = dot3(E, E), L = sqrt(L2), A1 = dot3(N1, N1), A2 = dot3(N2, N2);
+  A1 = A1 > 1e-300 ? A1 : 1e-300; A2 = A2 > 1e-300 ? A2 : 1e-300;
+  double r12 = 1.0 / sqrt(A1 * A2);
+  cross3(N1, N2, n12);
+  *cs = dot3(N1, N2) * r12;
+  *sn = dot3(n12, E) * r12 / (L > 1e-300 ? L : 1e-300);
+  if (g == NULL) return;
+  double w1 = dot3(cb, E) / L, w2 = dot3(db, E) / L;     /* (x1 - x4) . E / |E| etc. */
+  double v1 = dot3(ca, E) / L, v2 = dot3(da, E) / L;
+  for (int k = 0; k < 3; k++) {
+    double q1 = N1[k] / A1, q2 = N2[k] / A2;
+    g[k] = -L * q1;
+    g[3 + k] = -L * q2;
+    g[6 + k] = -(w1 * q1 + w2 * q2);
+    g[9 + k] = v1 * q1 + v2 * q2;
+  }
+}
+
+void hinge_cos_sin(long m, const double *y, double *c, double *s) {
+  for (long i = 0; i < m; i++) hinge_angle(y + 12 * i, c + i, s + i, NULL);
+}
+
+/* hinge energies k (1 - cos(theta - theta0)) and their gradients, theta0 given by its cosine
+   c0 and sine s0 */
+void hinge_energy(long m, const double *y, const double *c0, const double *s0,
+                  const double *k, double *E, double *g) {
+  for (long i = 0; i < m; i++) {
+    double cs, sn, *gi = g + 12 * i;
+    hinge_angle(y + 12 * i, &cs, &sn, gi);
+    E[i] = k[i] * (1.0 - (cs * c0[i] + sn * s0[i]));
+    double f = k[i] * (sn * c0[i] - cs * s0[i]);          /* k sin(theta - theta0) */
+    for (int j = 0; j < 12; j++) gi[j] *= f;
+  }
+}
+
+/* Hessians k cos(theta - theta0) g g^T + k sin(theta - theta0) H_theta, the curvature of the
+   angle by central differences of its exact gradient (step rel x the edge length) */
+/* the Hessian of one hinge into h (12 x 12, row-major, symmetric) */
+static void hinge_hess_one(const double *y, double c0, double s0, double k, double rel,
+                           double *h) {
+  double yy[12], g0[12], gp[12], gm[12], cs, sn;
+  memcpy(yy, y, sizeof yy);
+  hinge_angle(yy, &cs, &sn, g0);
+  double e[3];
+  sub3(yy + 9, yy + 6, e);
+  double step = rel * sqrt(dot3(e, e));
+  step = step > 1e-12 ? step : 1e-12;
+  double fc = k * (cs * c0 + sn * s0), fs = k * (sn * c0 - cs * s0);
+  for (int j = 0; j < 12; j++) {
+    double keep = yy[j], dc, ds;
+    yy[j] = keep + step; hinge_angle(yy, &dc, &ds, gp);
+    yy[j] = keep - step; hinge_angle(yy, &dc, &ds, gm);
+    yy[j] = keep;
+    for (int r = 0; r < 12; r++)
+      h[12 * r + j] = fc * g0[r] * g0[j] + fs * (gp[r] - gm[r]) / (2 * step);
+  }
+  symmetrise12(h);
+}
+
+void hinge_hess(long m, const double *y, const double *c0, const double *s0, const double *k,
+                double rel, double *H) {
+  for (long i = 0; i < m; i++) hinge_hess_one(y + 12 * i, c0[i], s0[i], k[i], rel, H + 144 * i);
+}
+
+/* the Hessians summed into a fixed sparse pattern: entry q of hinge i is added to
+   vals[place[144 i + q]] (skipped where place is negative: a fixed dof) */
+void hinge_hess_add(long m, const double *y, const double *c0, const double *s0,
+                    const double *k, double rel, const int64_t *place, double *vals) {
+  double h[144];
+  for (long i = 0; i < m; i++) {
+    hinge_hess_one(y + 12 * i, c0[i], s0[i], k[i], rel, h);
+    const int64_t *p = place + 144 * i;
+    for (int q = 0; q < 144; q++)
+      if (p[q] >= 0) vals[p[q]] += h[q];
+  }
+}
+
 /* The point terms' tangent as CSR rows (3 N of them, the free dofs' entries only, columns
    sorted): the sum of n 3 x 3 blocks, block q at node row r[q] and node column c[q] with
    entry (i, j) at K[off[q] + i stride[q] + j]. A block whose row or column node has no free
@@ -497,6 +593,52 @@ def _f64(a):
 
 def _i64(a):
     return np.ascontiguousarray(a, dtype=np.int64)
+
+
+def hinge_cos_sin(y: np.ndarray):
+    """(cos, sin) of the dihedral angles of stacked hinges ``y`` (m, 12), see
+    :func:`hinge_energy`."""
+    ffi, lib = load()
+    y = _f64(y)
+    c, s = np.empty(len(y)), np.empty(len(y))
+    lib.hinge_cos_sin(len(y), _ptr(ffi, y), _ptr(ffi, c), _ptr(ffi, s))
+    return c, s
+
+
+def hinge_energy(y: np.ndarray, c0: np.ndarray, s0: np.ndarray, k: np.ndarray):
+    """(E (m,), gradient (m, 12)) of the hinge energies ``k (1 - cos(theta - theta0))`` of
+    stacked hinges ``y`` (m, 12): nodes (c, d, a, b), the edge a-b between the triangles
+    (a, b, c) and (a, b, d); ``theta0`` by its cosine ``c0`` and sine ``s0`` (:mod:`mvfem.hinges`)."""
+    ffi, lib = load()
+    y, c0, s0, k = _f64(y), _f64(c0), _f64(s0), _f64(k)
+    m = len(y)
+    E, g = np.empty(m), np.empty((m, 12))
+    lib.hinge_energy(m, _ptr(ffi, y), _ptr(ffi, c0), _ptr(ffi, s0), _ptr(ffi, k), _ptr(ffi, E),
+                     _ptr(ffi, g))
+    return E, g
+
+
+def hinge_hessian(y: np.ndarray, c0: np.ndarray, s0: np.ndarray, k: np.ndarray,
+                  rel: float = 1e-4) -> np.ndarray:
+    """(m, 12, 12) Hessians of :func:`hinge_energy`."""
+    ffi, lib = load()
+    y, c0, s0, k = _f64(y), _f64(c0), _f64(s0), _f64(k)
+    H = np.empty((len(y), 12, 12))
+    lib.hinge_hess(len(y), _ptr(ffi, y), _ptr(ffi, c0), _ptr(ffi, s0), _ptr(ffi, k), rel,
+                   _ptr(ffi, H))
+    return H
+
+
+def hinge_hessian_add(y: np.ndarray, c0: np.ndarray, s0: np.ndarray, k: np.ndarray,
+                      place: np.ndarray, nnz: int, rel: float = 1e-4) -> np.ndarray:
+    """(nnz,) the Hessians of :func:`hinge_energy` summed into a fixed pattern: entry ``q`` of
+    hinge ``i`` into ``place[i, q]`` ((m, 144), negative: left out)."""
+    ffi, lib = load()
+    y, c0, s0, k, place = _f64(y), _f64(c0), _f64(s0), _f64(k), _i64(place)
+    vals = np.zeros(int(nnz))
+    lib.hinge_hess_add(len(y), _ptr(ffi, y), _ptr(ffi, c0), _ptr(ffi, s0), _ptr(ffi, k), rel,
+                       _index(ffi, place), _ptr(ffi, vals))
+    return vals
 
 
 def blocks_csr(N: int, free: np.ndarray, r: np.ndarray, c: np.ndarray, off: np.ndarray,

@@ -90,6 +90,10 @@ class Model:
     #: integrated along each update (mvfem.solver.SNESProblem.load_work)
     potential: ufl.core.expr.Expr | None = None
     ties: object = None          # mvfem.ties.Ties (clips, sutures)
+    #: bending stiffness D of the hinges when they are a point term (mvfem.hinges; 0 when the
+    #: bending is in ``energy`` as a form, or absent)
+    hinge_stiffness: float = 0.0
+    hinges: object = None        # mvfem.hinges.Hinges
     #: prescribed motion (annulus target, ring, papillary target, ties drawn tight):
     #: ``ramp(f)`` sets it to the fraction f in [0, 1]; None when the scene has none
     ramp: object = None
@@ -350,12 +354,17 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
     E_b = scene["bending"]["modulus"]
     if E_b is None:
         E_b = VALVE_BENDING_MODULUS if annulus is not None else 0.0
+    hinge_D = 0.0
     if E_b > 0:
-        from mvfem.forms.bending import hinge_energy
-
         h_mean = float(np.mean([float(r.thickness.value) for r in regions]))
-        D = fem.Constant(msh, E_b * h_mean**3 / 12.0)
-        energy = energy + hinge_energy(u, D) * ufl.dS(domain=msh, metadata={"quadrature_degree": 1})
+        hinge_D = E_b * h_mean**3 / 12.0
+        if not (degree == 1 and _compiled_hinges(comm)):
+            from mvfem.forms.bending import hinge_energy
+
+            D = fem.Constant(msh, hinge_D)
+            energy = energy + hinge_energy(u, D) * ufl.dS(domain=msh,
+                                                          metadata={"quadrature_degree": 1})
+            hinge_D = 0.0  # in the form, not a point term
 
     load = scene["load"]
     pressure = fem.Constant(msh, 0.0)
@@ -404,7 +413,7 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
                   pressure=pressure, p_target=p_target, stabiliser_scale=stab_scale,
                   energy=energy, residual=residual, load_form=p_term, bcs=bcs,
                   quadrature_degree=q, length_scale=L, info={"area_mm2": area}, phi=phi,
-                  potential=energy + p_pot)
+                  potential=energy + p_pot, hinge_stiffness=hinge_D)
     _point_terms(model)
     _compose_ramp(model, loop_motion)
     return model
@@ -586,8 +595,22 @@ def _has_chordae(surface) -> bool:
     return len(getattr(surface, "insertion_points", ())) > 0
 
 
+#: the hinge bending as a compiled point term (mvfem.hinges) where the kernels compile and the
+#: space is P1; False: always the UFL form over interior facets (the reference of the tests)
+COMPILED_HINGES = True
+
+
+def _compiled_hinges(comm) -> bool:
+    """Whether the hinges are a point term (collective: rank 0, which evaluates them, decides)."""
+    from mvfem import kernels
+
+    ok = COMPILED_HINGES and (comm.rank != 0 or kernels.load() is not None)
+    return bool(comm.bcast(ok if comm.rank == 0 else None, root=0))
+
+
 def _point_terms(model: Model) -> None:
-    """Chordae and contact, when the scene asks for them and the mesh is a valve."""
+    """Chordae, contact, ties and hinges, when the scene asks for them (chordae, contact and
+    ties on a valve)."""
     from mvfem.contact import Contact
     from mvfem.nodal import NodalView, PointTerms
 
@@ -601,7 +624,8 @@ def _point_terms(model: Model) -> None:
         raise InputError(f"{scene.source}: repair: neochordae and clips need a valve mesh")
     if scene["papillary"]["target"] is not None and not want_chordae:
         raise InputError(f"{scene.source}: papillary.target: the scene has no chordae to move")
-    if not (want_chordae or want_contact or want_ties):
+    want_hinges = model.hinge_stiffness > 0
+    if not (want_chordae or want_contact or want_ties or want_hinges):
         return
     try:
         view = NodalView(model.V, model.bcs, surface.cell_tags)
@@ -621,6 +645,11 @@ def _point_terms(model: Model) -> None:
     if want_ties:
         model.ties = _ties(scene, surface, view, model.V)
         terms.append(model.ties)
+    if want_hinges:
+        from mvfem.hinges import Hinges
+
+        model.hinges = Hinges(view, model.hinge_stiffness)
+        terms.append(model.hinges)
     model.view = view
     model.point_terms = PointTerms(view, terms)
 

@@ -488,7 +488,9 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     tight_atol = s["tolerance"] * load_norm
     method = s["method"]
     if method == "auto":
-        method = "pseudo-time" if model.point_terms else "load-steps"
+        # chordae, contact and ties (not the hinges): a slack structure that swings shut
+        slack = any(t is not None for t in (model.chordae, model.contact, model.ties))
+        method = "pseudo-time" if slack else "load-steps"
     max_steps = s["max_steps"] or MAX_STEPS[method]
     if comm.rank == 0 and progress:
         log.info(f"{scene.data['title'] or scene.source}: {model.V.dofmap.index_map.size_global * 3} "
