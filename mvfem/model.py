@@ -94,6 +94,9 @@ class Model:
     #: bending is in ``energy`` as a form, or absent)
     hinge_stiffness: float = 0.0
     hinges: object = None        # mvfem.hinges.Hinges
+    #: a zero bilinear form over the interior facets: room in the matrix for the hinges'
+    #: couplings (SNESProblem's ``sparsity``); None without hinges
+    sparsity: object = None
     #: prescribed motion (annulus target, ring, papillary target, ties drawn tight):
     #: ``ramp(f)`` sets it to the fraction f in [0, 1]; None when the scene has none
     ramp: object = None
@@ -650,6 +653,9 @@ def _point_terms(model: Model) -> None:
 
         model.hinges = Hinges(view, model.hinge_stiffness)
         terms.append(model.hinges)
+        v, du = ufl.TestFunction(model.V), ufl.TrialFunction(model.V)
+        zero = fem.Constant(model.mesh, 0.0)
+        model.sparsity = zero * ufl.inner(ufl.jump(du), ufl.jump(v)) * ufl.dS(domain=model.mesh)
     model.view = view
     model.point_terms = PointTerms(view, terms)
 

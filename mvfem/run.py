@@ -478,7 +478,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         problem = SNESProblem(model.residual, model.u, model.bcs, prefix=f"mvfem{next(_ids)}_",
                               options=_petsc_options(model, load_norm),
                               point_terms=model.point_terms, potential=model.energy,
-                              load=model.load_form)
+                              load=model.load_form, sparsity=model.sparsity)
     except ValueError as e:
         raise InputError(f"{scene.source}: solver.petsc_options: {e}") from None
     u = model.u

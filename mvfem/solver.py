@@ -79,11 +79,15 @@ class SNESProblem:
         load: optional load form (linear in the test function) that ``F`` subtracts and that
             has no potential (a follower pressure on a surface with free edges): the merit's
             change along an update adds its work, :meth:`load_work`.
+        sparsity: optional bilinear form whose couplings the matrix makes room for, never
+            assembled (the hinges, a point term, couple the two cells of each interior edge:
+            inserted into a matrix without room, 0.8 s went to reallocation in every fresh
+            matrix of a disk).
     """
 
     def __init__(self, F, u, bcs=(), J=None, prefix: str = "mvfem_", options: dict | None = None,
                  form_compiler_params: dict | None = None, jit_params: dict | None = None,
-                 point_terms=None, potential=None, load=None):
+                 point_terms=None, potential=None, load=None, sparsity=None):
         import ufl
         from dolfinx import fem
         from dolfinx.fem import petsc as fpetsc
@@ -95,7 +99,11 @@ class SNESProblem:
         kw = dict(form_compiler_params=form_compiler_params or {}, jit_params=jit_params or {})
         self.L = fem.form(F, **kw)
         self.a = fem.form(J, **kw)
-        self.A = fpetsc.create_matrix(self.a)
+        self.A = fpetsc.create_matrix(fem.form(J + sparsity, **kw) if sparsity is not None
+                                      else self.a)
+        if sparsity is not None:  # insert the pattern: the first assembly drops unused room
+            fpetsc.assemble_matrix(self.A, fem.form(sparsity, **kw))
+            self.A.assemble()
         self.Pi = fem.form(potential, **kw) if potential is not None else None
         self.P = fem.form(load, **kw) if load is not None else None
         self._pv = fpetsc.create_vector(self.P) if self.P is not None else None
