@@ -1050,3 +1050,43 @@ def test_compiled_hinges_are_the_bending_form():
     free = view.free.ravel()
     assert np.allclose(got, np.where(free[:, None] & free[None, :], K, 0.0), rtol=1e-13,
                        atol=1e-13 * np.abs(K).max())
+
+
+def test_the_matrix_has_room_for_the_hinges():
+    """SNESProblem(sparsity=model.sparsity) makes the tangent's pattern hold the hinges'
+    couplings (the third nodes of the two triangles at an edge share no cell): their
+    insertion into a copy that forbids new nonzeros succeeds; without it, it is refused (a
+    fresh matrix reallocated on every first insertion)."""
+    from pathlib import Path
+
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    from mvfem.model import build_model
+    from mvfem.scene import load_scene
+    from mvfem.solver import SNESProblem
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    m = build_model(scene.with_changes({"mesh.size": 4.0}), MPI.COMM_SELF)
+    blk = m.hinges(m.view.X)
+    indptr, cols, vals = blk.csr()
+    IT = PETSc.IntType
+    refused = []
+    for sparsity in (m.sparsity, None):
+        pb = SNESProblem(m.residual, m.u, m.bcs, prefix=f"room_{sparsity is None}_",
+                         sparsity=sparsity)
+        pb.evaluate_tangent(pb.u.vector, 0.0)
+        A = pb.A.duplicate()
+        A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+        try:
+            A.setValuesIJV(indptr.astype(IT), cols.astype(IT), vals + 1.0,
+                           addv=PETSc.InsertMode.ADD_VALUES,
+                           rowmap=np.arange(len(indptr) - 1, dtype=IT))
+            A.assemble()
+            refused.append(False)
+        except PETSc.Error:
+            refused.append(True)
+        finally:
+            A.destroy()
+            pb.destroy()
+    assert refused == [False, True]
