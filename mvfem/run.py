@@ -262,7 +262,9 @@ class _AdaptiveRamp:
 
 
 def _max_exponent(model: Model) -> float:
-    """Largest exponent of the Fung laws over all cells (0 when there is none)."""
+    """Largest exponent of the Fung laws, each over its own region's cells (0 when there is
+    none). (Each law over every cell, as until this stop, read 23.8 on the closed 1 mm demo
+    where the largest exponent was 5.8.)"""
     from mvfem.fields import cell_values
     from mvfem.forms import exponent, is_exponential
 
@@ -270,6 +272,9 @@ def _max_exponent(model: Model) -> float:
     for r in model.regions:
         if is_exponential(r.law):
             vals = cell_values(exponent(r.law, model.kin, *r.constants.values()), model.mesh)
+            if r.tag is not None:
+                cells = model.surface.cell_tags.find(r.tag)
+                vals = vals[cells[cells < len(vals)]]
             q = max(q, float(vals.max(initial=0.0)))
     return model.comm.allreduce(q, op=MPI.MAX)
 

@@ -234,3 +234,35 @@ def test_zero_pressure_without_motion_stays_at_rest(tmp_path, capsys, method):
     assert s["max_displacement_mm"] == 0.0
     q = s["regions"]["membrane"]["radial_cauchy_stress_Pa"]
     assert q["p5"] == 0.0 and q["p95"] == 0.0
+
+
+def test_max_exponent_reads_each_law_on_its_own_region():
+    """The exponent cap's check (run._max_exponent) evaluates a region's Fung law on that
+    region's cells only: with the anterior leaflet MNY and the posterior SVK, and only nodes of
+    posterior cells alone moved (stretched 30 % about the centre), every anterior cell is
+    unstrained, so the largest exponent is exactly 0 (each law over every cell read the
+    posterior stretch through the MNY law)."""
+    from mvfem.model import build_model
+    from mvfem.run import _max_exponent
+    from mvfem.scene import load_scene
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    scene = scene.with_changes({"mesh.size": 4.0, "region.1.law": "svk",
+                                "region.1.params": {"E": 4e5, "nu": 0.5},
+                                "region.1.thickness": 0.5})
+    m = build_model(scene, MPI.COMM_SELF)
+    tags = m.surface.cell_tags
+    ant = tags.find(m.regions[0].tag)
+    cells = m.V.dofmap.list.array.reshape(-1, 3)
+    n_cells = len(cells)
+    post_only = np.setdiff1d(np.arange(len(m.V.tabulate_dof_coordinates())),
+                             cells[ant[ant < n_cells]].ravel())
+    X = m.V.tabulate_dof_coordinates()
+    u = np.zeros_like(X)
+    u[post_only] = 0.3 * (X[post_only] - X.mean(axis=0))
+    m.u.x.array[:] = u.ravel()
+    assert len(post_only) > 20
+    assert _max_exponent(m) < 1e-20
+    m.regions[1].law = "mny"             # the posterior's stretch, read by an MNY law: > 0
+    m.regions[1].constants = m.regions[0].constants
+    assert _max_exponent(m) > 1.0
