@@ -94,6 +94,9 @@ class Model:
     #: bending is in ``energy`` as a form, or absent)
     hinge_stiffness: float = 0.0
     hinges: object = None        # mvfem.hinges.Hinges
+    #: the Fung laws' exponent cap (a Constant, MAX_EXPONENT but while a sequenced start
+    #: relaxes, mvfem/sequence.py)
+    exponent_cap: object = None
     #: a zero bilinear form over the interior facets: room in the matrix for the hinges'
     #: couplings (SNESProblem's ``sparsity``); None without hinges
     sparsity: object = None
@@ -342,13 +345,16 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
     tags = surface.cell_tags
     regions = []
     energy = 0
+    # the Fung laws' exponent beyond which they continue linearly (C1): MAX_EXPONENT, lowered
+    # at the start of a grid-sequenced solve (mvfem/sequence.py)
+    cap = fem.Constant(msh, MAX_EXPONENT)
     for r in scene["region"]:
         tag = _region_cells(surface, r["label"], len(scene["region"]), scene.source)
         dx = (ufl.Measure("dx", domain=msh, subdomain_data=tags, subdomain_id=tag, metadata=meta)
               if tag is not None else ufl.Measure("dx", domain=msh, metadata=meta))
         consts = {k: fem.Constant(msh, float(val)) for k, val in r["params"].items()}
         h0 = fem.Constant(msh, float(r["thickness"]))
-        extra = {"max_exponent": MAX_EXPONENT} if is_exponential(r["law"]) else {}
+        extra = {"max_exponent": cap} if is_exponential(r["law"]) else {}
         W = LAWS[r["law"]](kin, *consts.values(), **extra)
         regions.append(Region(r["label"] or "membrane", tag, r["law"], r.get("set", "custom"),
                               consts, h0, W, dx))
@@ -416,7 +422,7 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
                   pressure=pressure, p_target=p_target, stabiliser_scale=stab_scale,
                   energy=energy, residual=residual, load_form=p_term, bcs=bcs,
                   quadrature_degree=q, length_scale=L, info={"area_mm2": area}, phi=phi,
-                  potential=energy + p_pot, hinge_stiffness=hinge_D)
+                  potential=energy + p_pot, hinge_stiffness=hinge_D, exponent_cap=cap)
     _point_terms(model)
     _compose_ramp(model, loop_motion)
     return model

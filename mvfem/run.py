@@ -20,7 +20,7 @@ import numpy as np
 from mpi4py import MPI
 
 from mvfem.errors import InputError, SolverError
-from mvfem.model import MAX_EXPONENT, Model, build_model, lumped_mass
+from mvfem.model import MAX_EXPONENT, Model, build_model, default_size, lumped_mass
 from mvfem.scene import Scene, load_scene
 from mvfem.solver import (LoadStepper, PseudoTimeRecord, PseudoTransient, SNESProblem, SolveInfo,
                           StepRecord)
@@ -449,6 +449,91 @@ def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, loa
     return final_ok, stop_reason, t_reached, stepper.converged_steps, stepper.newton_iterations
 
 
+def _method(model: Model) -> str:
+    """The scene's solver.method, "auto" resolved: pseudo-time where chordae, contact or ties
+    make the structure slack (it swings shut; not the hinges), else load steps."""
+    method = model.scene["solver"]["method"]
+    if method == "auto":
+        slack = any(t is not None for t in (model.chordae, model.contact, model.ties))
+        method = "pseudo-time" if slack else "load-steps"
+    return method
+
+
+def _coarse_size(scene: Scene):
+    """The scene's ``solver.coarse_start`` (mm), or None."""
+    return scene["solver"].get("coarse_start")
+
+
+def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
+    """Close ``scene`` on the coarser mesh of ``solver.coarse_start`` and move its closed state
+    onto ``model`` (mvfem/sequence.py); what happened, for summary.json ``coarse_start``."""
+    import copy
+
+    from mvfem.scene import _make
+    from mvfem.sequence import transfer
+
+    hc = float(_coarse_size(scene))
+    m = scene["mesh"]
+    where = f"{scene.source}: solver.coarse_start"
+    if m["generator"] == "file":
+        raise InputError(f"{where}: needs a generated mesh (mesh.generator), not a file")
+    size = m.get("size") or default_size(m)
+    if hc <= size:
+        raise InputError(f"{where}: {hc:g} mm is not coarser than the mesh ({size:g} mm)")
+    if _method(model) != "pseudo-time":
+        raise InputError(f"{where}: needs the pseudo-time method (a valve: chordae or "
+                         "contact); load steps start from zero pressure")
+    if model.motion:
+        raise InputError(f"{where}: the scene prescribes a motion ({', '.join(model.motion)}), "
+                         "which ramps from the open state")
+    raw = copy.deepcopy(scene.raw)
+    raw["solver"].pop("coarse_start", None)
+    raw.setdefault("mesh", {})["size"] = hc
+    coarse_scene = _make(raw, scene.source, scene.base_dir)
+    t0 = time.perf_counter()
+    if comm.rank == 0 and progress:
+        log.info(f"coarse start: closing the valve on a {hc:g} mm mesh first")
+    res = solve(coarse_scene, comm=comm, progress=progress, write=False)
+    info = {"size_mm": hc, "converged": bool(res.converged),
+            "steps": res.summary["newton_iterations"],
+            "cells": res.summary["cells"], "wall_time_s": time.perf_counter() - t0}
+    if not res.converged:
+        info.update(used=False, reason="the coarse solve stopped short")
+    else:
+        info.update(transfer(res.model, model))
+    if comm.rank == 0:
+        line = (f"coarse start: {info['steps']} steps, {info['wall_time_s']:.1f} s; continuing "
+                f"on the {size:g} mm mesh ")
+        if info["used"]:
+            if progress:
+                log.info(line + "from its closed state")
+        else:
+            log.warning(line + f"from the open state ({info['reason']})")
+    return info
+
+
+class _RaiseCap:
+    """Pseudo-time progress that raises the Fung laws' exponent cap to MAX_EXPONENT once every
+    cell has relaxed below 0.9 x the start's (mvfem/sequence.py)."""
+
+    def __init__(self, inner, model: Model, info: dict):
+        self.inner, self.model, self.info = inner, model, info
+
+    def __call__(self, rec: PseudoTimeRecord, ptc: PseudoTransient) -> None:
+        self.inner(rec, ptc)
+        if rec.accepted and float(self.model.exponent_cap.value) != MAX_EXPONENT \
+                and _relaxed(self.model):
+            self.model.exponent_cap.value = MAX_EXPONENT
+            self.info["cap_raised_at_step"] = rec.step
+
+
+def _relaxed(model: Model) -> bool:
+    """Whether every cell's Fung exponent is below 0.9 x the sequenced start's cap."""
+    from mvfem.sequence import START_CAP
+
+    return _max_exponent(model) < 0.9 * START_CAP
+
+
 def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COMM_WORLD,
           progress: bool = True, write: bool = True,
           initial: np.ndarray | None = None) -> Result:
@@ -473,6 +558,9 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         prepare_out_on_root(out, comm)
     model = build_model(scene, comm)
     t_build = time.perf_counter() - t_start
+    seq = _coarse_start(scene, model, comm, progress) if _coarse_size(scene) is not None else None
+    if seq is not None and seq["used"]:
+        initial = None
     if initial is not None and not model.motion and len(initial) == len(model.u.x.array):
         model.u.x.array[:] = initial
         model.u.x.scatter_forward()
@@ -491,11 +579,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     mass = lumped_mass(model)
     problem.set_proximal(model.stabiliser_scale, weights=mass, centre=centre)
     tight_atol = s["tolerance"] * load_norm
-    method = s["method"]
-    if method == "auto":
-        # chordae, contact and ties (not the hinges): a slack structure that swings shut
-        slack = any(t is not None for t in (model.chordae, model.contact, model.ties))
-        method = "pseudo-time" if slack else "load-steps"
+    method = _method(model)
     max_steps = s["max_steps"] or MAX_STEPS[method]
     if comm.rank == 0 and progress:
         log.info(f"{scene.data['title'] or scene.source}: {model.V.dofmap.index_map.size_global * 3} "
@@ -507,13 +591,34 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         hook = None
         if motion is not None:
             hook = _AdaptiveRamp(model, motion, lambda: ptc.history)
-        ptc = PseudoTransient(problem, k0=model.stabiliser_scale, atol=tight_atol,
-                              max_steps=max_steps, on_step=_PseudoTimeProgress(load_norm, progress),
+        on_step = _PseudoTimeProgress(load_norm, progress)
+        k0 = model.stabiliser_scale
+        if seq is not None and seq["used"]:
+            from mvfem.sequence import START_CAP, START_WEIGHT
+
+            model.exponent_cap.value = START_CAP
+            on_step = _RaiseCap(on_step, model, seq)
+            k0 *= START_WEIGHT
+        ptc = PseudoTransient(problem, k0=k0, atol=tight_atol,
+                              max_steps=max_steps, on_step=on_step,
                               max_move=MAX_MOVE * model.length_scale, ramp=hook,
                               ramp_steps=RAMP_SLACK * model.ramp_steps if hook is not None else 0)
         info = ptc.run()
-        final_ok, stop_reason, t_reached = info.converged, ptc.stop_reason, 1.0
         load_steps, newton_its = ptc.accepted_steps, len(ptc.history)
+        if float(model.exponent_cap.value) != MAX_EXPONENT:
+            # the soft-capped problem's equilibrium: the true one only where no cell is
+            # beyond the cap; else go on with the true cap from here
+            model.exponent_cap.value = MAX_EXPONENT
+            seq["cap_raised_at_step"] = newton_its
+            if info.converged and not _relaxed(model):
+                ptc = PseudoTransient(problem, k0=model.stabiliser_scale, atol=tight_atol,
+                                      max_steps=max(max_steps - newton_its, 1),
+                                      on_step=_PseudoTimeProgress(load_norm, progress),
+                                      max_move=MAX_MOVE * model.length_scale)
+                info = ptc.run()
+                load_steps += ptc.accepted_steps
+                newton_its += len(ptc.history)
+        final_ok, stop_reason, t_reached = info.converged, ptc.stop_reason, 1.0
     else:
         final_ok, stop_reason, t_reached, load_steps, newton_its = _load_steps(
             model, problem, s, max_steps, load_norm, tight_atol, mass, centre, progress)
@@ -558,6 +663,8 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     if model.motion:
         summary["motion"] = {**model.motion, "ramp_steps": model.ramp_steps,
                              "order": s["motion"]}
+    if seq is not None:
+        summary["coarse_start"] = seq
     result = Result(summary=summary, u=u, model=model, out=Path(out) if out else None)
     write_outputs(result, problem, write=write and out is not None)
     problem.destroy()

@@ -181,6 +181,9 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         # over the first half of the ramp at zero pressure, then the pressure (as a ring is
         # sewn in on the arrested heart)
         "motion": (_choice("with-pressure", "before-pressure"), "with-pressure"),
+        # grid sequencing (mvfem/sequence.py): close the same generated scene on a coarser
+        # mesh of this size (mm) first and start from its closed state moved onto this mesh
+        "coarse_start": (_pos, None),
     },
     "output": {
         "probes": (None, []),  # checked in _check_probes

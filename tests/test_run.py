@@ -266,3 +266,22 @@ def test_max_exponent_reads_each_law_on_its_own_region():
     m.regions[1].law = "mny"             # the posterior's stretch, read by an MNY law: > 0
     m.regions[1].constants = m.regions[0].constants
     assert _max_exponent(m) > 1.0
+
+
+@pytest.mark.parametrize("changes, what", [
+    ({"mesh.size": 4.0, "solver.coarse_start": 3.0}, "not coarser than the mesh"),
+    ({"mesh.size": 4.0, "solver.coarse_start": 6.0, "solver.method": "load-steps"},
+     "needs the pseudo-time method"),
+    ({"mesh.size": 4.0, "solver.coarse_start": 6.0, "repair.ring": {"shape": "d-shaped", "size": 28}},
+     "prescribes a motion"),
+])
+def test_coarse_start_refuses_what_it_cannot_start(changes, what):
+    """solver.coarse_start (grid sequencing) refuses, with one line naming the key and before
+    any solve: a size not coarser than the mesh, load steps (they start from zero pressure),
+    and a prescribed motion (it ramps from the open state)."""
+    from mvfem.errors import InputError
+    from mvfem.scene import load_scene
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    with pytest.raises(InputError, match=r"solver\.coarse_start: .*" + what):
+        solve(scene.with_changes(changes), progress=False, write=False)

@@ -52,11 +52,16 @@ def test_coarse_valve_closes_without_interpenetration(tmp_path):
         assert (tmp_path / "out" / name).stat().st_size > 0
 
 
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """`mvfem demo`'s closure from the open state (one run of ~30 s for two tests)."""
+    return mvfem.solve(DEMO, out=tmp_path_factory.mktemp("demo") / "out", progress=False)
+
+
 @pytest.mark.slow
-def test_demo_valve_closes_competently(tmp_path):
+def test_demo_valve_closes_competently(demo):
     """`mvfem demo`'s scene: competent closure with healthy coaptation and tenting."""
-    r = mvfem.solve(DEMO, out=tmp_path / "out", progress=False)
-    s = r.summary
+    s = demo.summary
     _closed(s)
     v = s["valve"]
     assert v["regurgitant_orifice_area_mm2"] < 0.01 * v["annulus_area_mm2"]
@@ -114,3 +119,30 @@ def test_patient_valve_converges(patient):
     """It stalled at 4.9e-5 of the load after 1500 steps with the swept-volume merit (375
     steps with the pressure's work integrated)."""
     _closed(patient)
+
+
+@pytest.mark.slow
+def test_coarse_start_reaches_the_same_closure_in_fewer_steps(demo):
+    """Grid sequencing (solver.coarse_start = 4 mm, mvfem/sequence.py): the demo closed on a
+    4 mm mesh first and continued on its own 2 mm mesh from that state reaches the closure
+    from the open state (nodes within 0.1 mm on average, coaptation and tenting within 0.1 mm,
+    no penetration) in under 60 % of its pseudo-time steps on the 2 mm mesh. Measured: 0.072 mm
+    on average, the commissural folds settling in nearby equilibria, as roundoff alone moves
+    the closure from the open state (README, "Wall time"); the 2 mm mesh's own error against
+    1 mm is 0.10 mm on average."""
+    import numpy as np
+    from mpi4py import MPI
+
+    scene = mvfem.load_scene(DEMO).with_changes({"solver.coarse_start": 4.0})
+    r = mvfem.solve(scene, progress=False, write=False)
+    s, s0 = r.summary, demo.summary
+    seq = s["coarse_start"]
+    assert seq["used"] and seq["converged"] and seq["cells"] < s["cells"] / 2
+    assert seq["cap_raised_at_step"] < s["newton_iterations"]
+    assert s["converged"] and s["max_penetration_mm"] == 0.0
+    assert s["newton_iterations"] < 0.6 * s0["newton_iterations"]
+    for key in ("coaptation_length_mm", "tenting_height_mm"):
+        assert abs(s["valve"][key] - s0["valve"][key]) < 0.1, key
+    d = np.linalg.norm((r.u.x.array - demo.u.x.array).reshape(-1, 3), axis=1)
+    mean = MPI.COMM_WORLD.allreduce(d.sum(), op=MPI.SUM) / MPI.COMM_WORLD.allreduce(len(d))
+    assert mean < 0.1

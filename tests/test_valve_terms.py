@@ -331,6 +331,7 @@ _VALVE = {"mesh": {"generator": "valve"},
     ({"contact.thickness": "-1 mm"}, "contact.thickness"),
     ({"contact.stiffness": "3 kPa"}, "contact.stiffness"),
     ({"bending.modulus": -5}, "bending.modulus"),
+    ({"solver.coarse_start": 0}, "solver.coarse_start"),
     ({"mesh.annulus": "no_such.csv"}, "mesh.annulus"),
     ({"mesh.generator": "disk", "mesh.ap_diameter": 30}, "mesh.ap_diameter"),
 ])
@@ -1090,3 +1091,35 @@ def test_the_matrix_has_room_for_the_hinges():
             A.destroy()
             pb.destroy()
     assert refused == [False, True]
+
+
+def test_transfer_of_a_rigid_motion_is_rigid():
+    """Grid sequencing's transfer (mvfem.sequence.transfer_nodes) moves the nodes of the 3 mm
+    valve, projected onto the 6 mm one (up to tenths of a mm off it: chords of the curved
+    surface and the free edge beyond the coarse one), by exactly the rigid motion given to the
+    coarse nodes; and a fine node on the coarse surface goes with an affine stretch of it."""
+    from mpi4py import MPI
+
+    from mvfem.meshes.valve import valve
+    from mvfem.sequence import transfer_nodes
+
+    def nodes(size):
+        m = valve(MPI.COMM_SELF, size=size).mesh
+        return m.geometry.x.copy(), m.geometry.dofmap.array.reshape(-1, 3).astype(np.int64)
+
+    Xc, cc = nodes(6.0)
+    Xf, _ = nodes(3.0)
+    t = 0.7
+    R = np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]])
+    R = R @ np.array([[1.0, 0.0, 0.0], [0.0, np.cos(0.4), -np.sin(0.4)],
+                      [0.0, np.sin(0.4), np.cos(0.4)]])
+    shift = np.array([1.5, -2.0, 3.0])
+    Uf, dist = transfer_nodes(Xc, cc, Xc @ R.T + shift - Xc, Xf)
+    assert dist.max() > 0.1
+    assert np.abs(Xf + Uf - (Xf @ R.T + shift)).max() < 1e-10
+    # an affine stretch of the coarse mesh: a fine node on the coarse surface moves with it
+    A = np.diag([1.2, 0.9, 1.1])
+    Uf, dist = transfer_nodes(Xc, cc, Xc @ A.T - Xc, Xf)
+    on = dist < 1e-12
+    assert on.sum() > 10
+    assert np.abs((Xf + Uf)[on] - Xf[on] @ A.T).max() < 1e-10
