@@ -8,9 +8,9 @@ fine mesh, leaves the fine solve the end game only. Three things make that start
 
 - the transfer (:func:`transfer`): each fine reference node is projected onto the nearest
   coarse reference triangle and carried by that triangle's deformation, its offset from the
-  triangle in the triangle's rotated frame; clamped dofs keep their (zero) Dirichlet values. A state in which
-  an edge crosses a triangle is refused (the contact barrier is unsigned: such a start would
-  stay crossed), and the solve starts from the open state;
+  triangle in the triangle's rotated frame; clamped dofs keep their (zero) Dirichlet values.
+  A state in which an edge crosses a triangle is refused (the contact barrier is unsigned:
+  such a start would stay crossed), and the solve starts from the open state;
 - fine cells that straddle a crease of the coarse closed surface come out crushed (exponents
   of the Fung laws up to 400, a residual of 1e92, every pseudo-time step refused). The laws'
   exponent is continued linearly beyond :data:`START_CAP` instead of ``MAX_EXPONENT`` until
@@ -25,13 +25,9 @@ across a fold shorten): not used.
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 
 __all__ = ["transfer", "transfer_nodes", "START_CAP", "START_WEIGHT"]
-
-log = logging.getLogger(__name__)
 
 #: the Fung laws' exponent cap while a transferred state relaxes
 START_CAP = 10.0
