@@ -18,7 +18,7 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
-__all__ = ["Blocks", "NodalView", "PointTerms", "smooth_penalty", "lumped_area"]
+__all__ = ["Blocks", "NodalView", "PointTerms", "add_csr", "smooth_penalty", "lumped_area"]
 
 
 class Blocks:
@@ -155,6 +155,15 @@ class NodalView:
         return dofs.reshape(len(nodes), -1).astype(PETSc.IntType)
 
 
+def add_csr(A: PETSc.Mat, csr) -> None:
+    """Add ``(indptr, cols, vals)``, rows over every dof in the global numbering (rank 0's
+    rows; other ranks pass none), to ``A`` in one ``setValuesIJV`` (no assembly)."""
+    IT = PETSc.IntType
+    indptr, cols, vals = csr
+    A.setValuesIJV(indptr.astype(IT), cols.astype(IT), vals, addv=PETSc.InsertMode.ADD_VALUES,
+                   rowmap=np.arange(len(indptr) - 1, dtype=IT))
+
+
 class PointTerms:
     """Adds point terms (callables ``x -> Blocks`` on rank 0) to a residual and a tangent.
 
@@ -236,14 +245,9 @@ class PointTerms:
         blocks = self.evaluate(x.array_r)
         parts = [self._stiffness_csr([blk for blk in blocks if blk.csr is None])]
         parts += [blk.csr() for blk in blocks if blk.csr is not None and len(blk.nodes)]
-        IT = PETSc.IntType
         for csr in parts:
-            if csr is None:
-                continue
-            indptr, cols, vals = csr
-            A.setValuesIJV(indptr.astype(IT), cols.astype(IT), vals,
-                           addv=PETSc.InsertMode.ADD_VALUES,
-                           rowmap=np.arange(len(indptr) - 1, dtype=IT))
+            if csr is not None:
+                add_csr(A, csr)
         A.assemble()
         self.time_s += time.perf_counter() - t0
 

@@ -173,10 +173,11 @@ def reference_step_time(model, problem) -> float:
     chordae and contact are left out)."""
     import time
 
-    import numpy as np
     from dolfinx.fem import petsc as fpetsc
     from mpi4py import MPI
     from petsc4py import PETSc
+
+    from mvfem.nodal import add_csr
 
     comm = model.comm
     comm.Barrier()
@@ -190,11 +191,7 @@ def reference_step_time(model, problem) -> float:
         x = model.point_terms.positions(model.u.x.array[:n_owned])
         blk = model.hinges(x) if x is not None else None
         if blk is not None and blk.csr is not None:
-            IT = PETSc.IntType
-            indptr, cols, vals = blk.csr()
-            A.setValuesIJV(indptr.astype(IT), cols.astype(IT), vals,
-                           addv=PETSc.InsertMode.ADD_VALUES,
-                           rowmap=np.arange(len(indptr) - 1, dtype=IT))
+            add_csr(A, blk.csr())
         A.assemble()
     ksp = PETSc.KSP().create(comm)
     ksp.setOperators(A)
