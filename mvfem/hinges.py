@@ -30,9 +30,14 @@ def hinges_of(cells: np.ndarray) -> np.ndarray:
     """(m, 4) hinges ``(c, d, a, b)`` of a triangle mesh: each edge ``a-b`` shared by exactly two
     triangles, ``c`` the third node of the first of them and ``d`` of the second (in the order
     of ``cells``), ``a < b``."""
+    return _hinges_and_cells(cells)[0]
+
+
+def _hinges_and_cells(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`hinges_of` and (m, 2) the indices of each hinge's two triangles."""
     cells = np.asarray(cells, dtype=np.int64)
     if len(cells) == 0:
-        return np.zeros((0, 4), dtype=np.int64)
+        return np.zeros((0, 4), dtype=np.int64), np.zeros((0, 2), dtype=np.int64)
     n = len(cells)
     pairs = [(0, 1, 2), (1, 2, 0), (2, 0, 1)]
     a = np.concatenate([cells[:, i] for i, _, _ in pairs])
@@ -51,7 +56,8 @@ def hinges_of(cells: np.ndarray) -> np.ndarray:
         run = np.r_[False, first[1:] == first[:-1] + 1]
         triple = run | np.r_[run[1:], False]
     first = first[~triple]
-    return np.stack([opp[first], opp[first + 1], lo[first], hi[first]], axis=1)
+    hinges = np.stack([opp[first], opp[first + 1], lo[first], hi[first]], axis=1)
+    return hinges, np.stack([cell[first], cell[first + 1]], axis=1)
 
 
 def _cell_diameters(X: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -76,25 +82,22 @@ class Hinges:
         self.view, self.D, self.rel = view, float(D), float(rel)
         self._kernels = kernels
         X, cells = view.X, view.cells
-        self.nodes = hinges_of(cells)
+        self.nodes, two = _hinges_and_cells(cells)
         if len(self.nodes):
-            # each hinge's two triangles: the mean of their diameters
+            # the mean of the diameters of each hinge's two triangles
             diam = _cell_diameters(X, cells)
-            key = {}
-            for i, (a, b, c) in enumerate(np.sort(cells, axis=1)):
-                for e in ((a, b), (b, c), (a, c)):
-                    key.setdefault(e, []).append(i)
-            two = np.array([key[(a, b)][:2] for a, b in self.nodes[:, 2:]])
             h = 0.5 * (diam[two[:, 0]] + diam[two[:, 1]])
             length = np.linalg.norm(X[self.nodes[:, 3]] - X[self.nodes[:, 2]], axis=1)
             self.k = self.D * length / h
             self.c0, self.s0 = kernels.hinge_cos_sin(X[self.nodes].reshape(-1, 12))
         else:
             self.k = self.c0 = self.s0 = np.zeros(0)
+        self._csr = self._pattern()
 
     def _pattern(self):
         """The tangent's fixed CSR pattern over the free dofs (rows every dof, as the point
-        terms' rows) and where each of the hinges' 144 Hessian entries goes in it."""
+        terms' rows): (indptr, cols, where each of the hinges' 144 Hessian entries goes in it,
+        number of entries)."""
         free = self.view.free
         N = len(free)
         dofs = (3 * self.nodes[:, :, None] + np.arange(3)).reshape(-1, 12)
@@ -107,14 +110,12 @@ class Hinges:
         place = np.full(keep.size, -1, dtype=np.int64)
         place[keep] = inverse
         indptr = np.r_[0, np.cumsum(np.bincount(uniq // (3 * N), minlength=3 * N))]
-        self._csr = (indptr, uniq % (3 * N), place.reshape(-1, 144), len(uniq))
+        return indptr, uniq % (3 * N), place.reshape(-1, 144), len(uniq)
 
     def tangent_csr(self, y: np.ndarray):
         """(indptr, cols, vals) of the hinges' tangent at stacked coordinates ``y``: the
         Hessians summed into the fixed pattern, in C (bucketing the demo's 26 000 hinge blocks
         with the contact's took 6.7 ms a tangent, a bincount of the Hessians 1.5)."""
-        if getattr(self, "_csr", None) is None:
-            self._pattern()
         indptr, cols, place, nnz = self._csr
         vals = self._kernels.hinge_hessian_add(y, self.c0, self.s0, self.k, place, nnz, self.rel)
         return indptr, cols, vals
@@ -131,6 +132,3 @@ class Hinges:
         blk = Blocks(self.nodes, g.reshape(-1, 4, 3), stiffness, float(E.sum()))
         blk.csr = lambda: self.tangent_csr(y)
         return blk
-
-    def energy(self, x: np.ndarray) -> float:
-        return self(x).energy
