@@ -617,19 +617,24 @@ def _quote(a: str) -> str:
 #: the next invocation of the study makes again
 _INTERRUPTED = (130, 143, -signal.SIGINT, -signal.SIGTERM)
 
+#: how many times a run that exits 1 at start-up without a word (_silent_start_exit) is started
+#: again before the exit is recorded as its failure
+_RETRIES = 2
 
-def _silent_start_exit(r: _Running, out: Path, within_s: float = 10.0) -> bool:
-    """The run ended within ``within_s`` of its start with nothing in its log but the
-    command line and no summary."""
+
+def _silent_start_exit(r: _Running, out: Path, within_s: float = 60.0) -> bool:
+    """The run ended within ``within_s`` of its start without a word of its own: no summary,
+    no Python traceback and no ``mvfem:`` line in its log (a line or two from MPI or a library
+    may be there)."""
     d = r.spec.dir(out)
     if time.perf_counter() - r.started > within_s or (d / "summary.json").exists():
         return False
     r.log.flush()
     try:
-        lines = (d / "run.log").read_text(errors="replace").strip().splitlines()
+        lines = (d / "run.log").read_text(errors="replace").strip().splitlines()[1:]
     except OSError:
         return False
-    return len(lines) <= 1
+    return not any(ln.startswith(("Traceback", "mvfem:")) or "Error" in ln for ln in lines)
 
 
 def _finish(r: _Running, out: Path, rc: int | None, reason: str | None = None) -> dict | None:
@@ -683,7 +688,7 @@ def _schedule(study: Study, out: Path, todo: list, processes: int, prog: _Progre
     running: list[_Running] = []
     waiting: list[RunSpec] = []     # held by an orphan of an earlier study: retried later
     said_waiting: set[str] = set()
-    retried: set[str] = set()
+    retried: dict[str, int] = {}    # silent start-up exits per run, started again
     durations: dict[str, list[float]] = {}
     done = skipped
     ran = 0
@@ -728,16 +733,16 @@ def _schedule(study: Study, out: Path, todo: list, processes: int, prog: _Progre
                     else:
                         continue
                 running.remove(r)
-                if rc == 1 and reason is None and r.spec.key not in retried \
+                if rc == 1 and reason is None and retried.get(r.spec.key, 0) < _RETRIES \
                         and _silent_start_exit(r, out):
-                    # about one run in a few hundred exits 1 at start-up with no output at all
-                    # (no Python traceback: the MPI singleton's start-up; README, Studies);
-                    # once per run it is started again, and a second such exit is recorded
-                    retried.add(r.spec.key)
+                    # about one run in 150 (six at once) exits 1 at start-up with no output at
+                    # all (no Python traceback: between PETSc's start and the first gmsh call;
+                    # README, Studies); it is started again, up to _RETRIES times
+                    retried[r.spec.key] = retried.get(r.spec.key, 0) + 1
                     r.log.close()
                     r.lock.release()
                     prog.line(f"  {r.spec.key}: exit code 1 with no output at start-up; "
-                              "started again once")
+                              f"started again ({retried[r.spec.key]} of {_RETRIES})")
                     queue.insert(0, r.spec)
                     continue
                 rec = _finish(r, out, rc, reason)
