@@ -97,9 +97,19 @@ class SNESProblem:
         if J is None:
             J = ufl.derivative(F, u, ufl.TrialFunction(u.function_space))
         kw = dict(form_compiler_params=form_compiler_params or {}, jit_params=jit_params or {})
+        pattern = None
+        if sparsity is not None:
+            # on J's own arguments: a cold FFCx compile sets variant='equispaced' on the space's
+            # elements, and arguments made after it hash unlike (though equal to) those made
+            # before, which UFL refuses in one form ("Found different Arguments with same number
+            # and part"; tests/test_valve_terms.py::test_pattern_form_made_after_a_cold_compile)
+            mine = sorted(sparsity.arguments(), key=lambda a: a.number())
+            theirs = sorted(J.arguments(), key=lambda a: a.number())
+            sparsity = ufl.replace(sparsity, dict(zip(mine, theirs)))
+            pattern = J + sparsity
         self.L = fem.form(F, **kw)
         self.a = fem.form(J, **kw)
-        self.A = fpetsc.create_matrix(fem.form(J + sparsity, **kw) if sparsity is not None
+        self.A = fpetsc.create_matrix(fem.form(pattern, **kw) if pattern is not None
                                       else self.a)
         if sparsity is not None:  # insert the pattern: the first assembly drops unused room
             fpetsc.assemble_matrix(self.A, fem.form(sparsity, **kw))

@@ -1093,6 +1093,37 @@ def test_the_matrix_has_room_for_the_hinges():
     assert refused == [False, True]
 
 
+def test_pattern_form_made_after_a_cold_compile(tmp_path):
+    """A cold FFCx compile (here: a fresh cache directory) sets ``variant='equispaced'`` on the
+    elements of the space, so test functions made after it hash unlike those made before,
+    though equal; ``J + sparsity`` with one of each was refused ("Found different Arguments
+    with same number and part", the first valve run on a fresh machine). SNESProblem builds
+    the pattern on the tangent's own arguments."""
+    import ufl
+    from dolfinx import fem, mesh
+    from mpi4py import MPI
+
+    from mvfem.solver import SNESProblem
+
+    x = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.2]])
+    cell = ufl.Cell("triangle", geometric_dimension=3)
+    msh = mesh.create_mesh(MPI.COMM_SELF, np.array([[0, 1, 2], [1, 3, 2]], dtype=np.int64), x,
+                           ufl.Mesh(ufl.VectorElement("Lagrange", cell, 1)))
+    V = fem.VectorFunctionSpace(msh, ("Lagrange", 1))
+    u = fem.Function(V)
+    F = ufl.inner(u, ufl.TestFunction(V)) * ufl.dx
+    jit = {"cache_dir": str(tmp_path / "jit")}
+    fem.form(ufl.inner(u, u) * ufl.dx, jit_params=jit)  # cold: the elements change
+    v, du = ufl.TestFunction(V), ufl.TrialFunction(V)
+    sparsity = fem.Constant(msh, 0.0) * ufl.inner(ufl.jump(du), ufl.jump(v)) * ufl.dS
+    pb = SNESProblem(F, u, [], prefix="cold_pattern_", sparsity=sparsity, jit_params=jit)
+    pb.evaluate_tangent(pb.u.vector, 0.0)
+    # the cells share the edge 1-2; nodes 0 and 3 are coupled only through the pattern: all
+    # 4 x 3 dofs with all (144 entries), not 144 - 2 x 9
+    assert len(pb.A.getValuesCSR()[1]) == 144
+    pb.destroy()
+
+
 def test_transfer_of_a_rigid_motion_is_rigid():
     """Grid sequencing's transfer (mvfem.sequence.transfer_nodes) moves the nodes of the 3 mm
     valve, projected onto the 6 mm one (up to tenths of a mm off it: chords of the curved
