@@ -121,14 +121,20 @@ class _Budget(Exception):
 def calibrate(scene, reference: str | Path, fit: list[str], out: str | Path,
               bounds: list[tuple[float, float]] | None = None,
               start: list[float] | None = None, max_evals: int = 30, warm: bool = False,
-              say: Callable[[str], None] | None = None, comm=MPI.COMM_WORLD) -> dict:
+              grid: int | None = None, say: Callable[[str], None] | None = None,
+              comm=MPI.COMM_WORLD) -> dict:
     """Fit the scene keys ``fit`` so that the closed valve matches ``reference``.
 
-    Collective on ``comm``. Validates everything before writing anything.
+    Collective on ``comm``. Validates everything before writing anything. With ``grid = N``
+    the ``N ** len(fit)`` points of a regular grid over the bounds are evaluated first and
+    the local optimiser starts from the best of them (the start too), with steps of half the
+    grid spacing: the closed valve with contact has more than one equilibrium, and the
+    distance has narrow wells (README, Calibration) that a local search from afar misses.
 
     Raises:
         InputError: missing or unreadable reference, unknown or non-numeric key, empty bounds,
-            start outside the bounds, a reference that does not overlap the valve.
+            start outside the bounds, a reference that does not overlap the valve, a grid
+            larger than the evaluation budget.
     Returns:
         The content of ``calibration.json``.
     """
@@ -173,6 +179,11 @@ def calibrate(scene, reference: str | Path, fit: list[str], out: str | Path,
         except InputError as e:
             raise InputError(f"--fit/--reference: {e}") from None
 
+    if grid is not None and (grid < 2 or grid ** n + 1 > max_evals):
+        raise InputError(f"--grid {grid}: expected 2 or more points per key, and at most "
+                         f"--max-evals {max_evals} evaluations with the start "
+                         f"({grid}^{n} + 1 = {grid ** n + 1})" if grid >= 2 else
+                         f"--grid {grid}: expected 2 or more points per key")
     scene_at(start)  # the reference reads, the keys take numbers: before anything is written
     _check_overlap(scene, ref, comm)
     out = Path(out)
@@ -227,16 +238,30 @@ def calibrate(scene, reference: str | Path, fit: list[str], out: str | Path,
     evaluate(start)
     before = rows[0]
     message = ""
+    local_start, local_bounds, step = list(start), bounds, [0.1 * (hi - lo) for lo, hi in bounds]
+    if grid is not None:
+        axes = [np.linspace(lo, hi, grid) for lo, hi in bounds]
+        for x in np.array(np.meshgrid(*axes, indexing="ij")).reshape(n, -1).T:
+            evaluate(x)
+        local_start = list(best["x"])
+        step = [0.5 * (hi - lo) / (grid - 1) for lo, hi in bounds]
+        # one key: Brent within a grid spacing either side of the best grid point
+        local_bounds = [(max(lo, v - 2 * h), min(hi, v + 2 * h))
+                        for v, h, (lo, hi) in zip(local_start, step, bounds)]
+        say(f"grid of {grid ** n}: best {', '.join(f'{v:.4f}' for v in local_start)} "
+            f"({best['error']:.4f} mm); local search from there")
     try:
         if n == 1:
-            res = so.minimize_scalar(evaluate, bounds=bounds[0], method="bounded",
+            res = so.minimize_scalar(evaluate, bounds=local_bounds[0], method="bounded",
                                      options={"xatol": XATOL, "maxiter": max_evals})
         else:
-            simplex = [start] + [[v + (0.1 * (hi - lo) if j == k else 0.0)
-                                  for k, (v, (lo, hi)) in enumerate(zip(start, bounds))]
-                                 for j in range(n)]
+            # a step down where a step up would leave the bounds (a grid point on an edge)
+            simplex = [local_start] + [
+                [v + ((h if v + h <= hi else -h) if j == k else 0.0)
+                 for k, (v, h, (lo, hi)) in enumerate(zip(local_start, step, bounds))]
+                for j in range(n)]
             simplex = np.clip(np.array(simplex), [b[0] for b in bounds], [b[1] for b in bounds])
-            res = so.minimize(evaluate, start, method="Nelder-Mead", bounds=bounds,
+            res = so.minimize(evaluate, local_start, method="Nelder-Mead", bounds=bounds,
                               options={"xatol": XATOL, "fatol": 1e-3, "maxfev": max_evals,
                                        "initial_simplex": simplex})
         message = str(res.message)
@@ -253,7 +278,7 @@ def calibrate(scene, reference: str | Path, fit: list[str], out: str | Path,
         "converged": after["converged"], "best_evaluation": after["index"],
         "evaluations": len(rows), "optimiser": "minimize_scalar bounded" if n == 1
         else "Nelder-Mead with bounds", "optimiser_message": message,
-        "warm_start": warm, "time_s": round(time.perf_counter() - t0, 1),
+        "warm_start": warm, "grid": grid, "time_s": round(time.perf_counter() - t0, 1),
         "held_apart": _held_apart(after, ref),
     }
     if rank0:

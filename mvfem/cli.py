@@ -306,7 +306,7 @@ def _cmd_calibrate(args) -> int:
     scene = load_scene(args.scene)
     say = _say if MPI.COMM_WORLD.rank == 0 else (lambda s: None)
     res = calibrate(scene, args.reference, fit, args.out, bounds=bounds, start=start,
-                    max_evals=args.max_evals, warm=args.warm_start, say=say)
+                    max_evals=args.max_evals, warm=args.warm_start, grid=args.grid, say=say)
     h = res["held_apart"]
     for q, v in h["fitted"].items():
         r = (h.get("reference") or {}).get(q)
@@ -398,6 +398,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "(default 0.8:1.4)")
     ca.add_argument("--start", help="start values, comma-separated (default: the scene's)")
     ca.add_argument("--max-evals", type=int, default=30, help="solves at most (default 30)")
+    ca.add_argument("--grid", type=int, help="first evaluate N points per key on a regular "
+                    "grid over the bounds (N^keys solves, within --max-evals) and search "
+                    "locally from the best")
     ca.add_argument("--warm-start", action="store_true", help="start each solve from the last "
                     "converged one (faster, but path dependent: see README)")
     ca.add_argument("--out", required=True, help="output directory")
