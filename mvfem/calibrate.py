@@ -179,11 +179,11 @@ def calibrate(scene, reference: str | Path, fit: list[str], out: str | Path,
         except InputError as e:
             raise InputError(f"--fit/--reference: {e}") from None
 
-    if grid is not None and (grid < 2 or grid ** n + 1 > max_evals):
-        raise InputError(f"--grid {grid}: expected 2 or more points per key, and at most "
-                         f"--max-evals {max_evals} evaluations with the start "
-                         f"({grid}^{n} + 1 = {grid ** n + 1})" if grid >= 2 else
-                         f"--grid {grid}: expected 2 or more points per key")
+    if grid is not None and grid < 2:
+        raise InputError(f"--grid {grid}: expected 2 or more points per key")
+    if grid is not None and grid ** n + 1 > max_evals:
+        raise InputError(f"--grid {grid}: {grid}^{n} + 1 = {grid ** n + 1} evaluations with the "
+                         f"start, more than --max-evals {max_evals}")
     scene_at(start)  # the reference reads, the keys take numbers: before anything is written
     _check_overlap(scene, ref, comm)
     out = Path(out)
