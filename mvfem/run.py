@@ -460,8 +460,9 @@ def _method(model: Model) -> str:
 
 
 def _coarse_size(scene: Scene):
-    """The scene's ``solver.coarse_start`` (mm), or None."""
-    return scene["solver"].get("coarse_start")
+    """The finest level of the scene's ``solver.coarse_start`` (mm), or None."""
+    c = scene["solver"].get("coarse_start")
+    return min(c) if isinstance(c, list) else c
 
 
 def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
@@ -487,7 +488,12 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
         raise InputError(f"{where}: the scene prescribes a motion ({', '.join(model.motion)}), "
                          "which ramps from the open state")
     raw = copy.deepcopy(scene.raw)
-    raw["solver"].pop("coarse_start", None)
+    levels = scene["solver"]["coarse_start"]
+    coarser = [h for h in levels if h > hc] if isinstance(levels, list) else []
+    if coarser:  # the coarse solve starts from the next level in its turn
+        raw["solver"]["coarse_start"] = coarser
+    else:
+        raw["solver"].pop("coarse_start", None)
     raw.setdefault("mesh", {})["size"] = hc
     coarse_scene = _make(raw, scene.source, scene.base_dir)
     t0 = time.perf_counter()
@@ -497,6 +503,8 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
     info = {"size_mm": hc, "converged": bool(res.converged),
             "steps": res.summary["newton_iterations"],
             "cells": res.summary["cells"], "wall_time_s": time.perf_counter() - t0}
+    if res.summary.get("coarse_start"):  # its own coarser start, included in wall_time_s
+        info["coarser"] = res.summary["coarse_start"]
     if not res.converged:
         info.update(used=False, reason="the coarse solve stopped short")
     else:

@@ -93,6 +93,18 @@ def _pos(path, v):
     return _number(path, v, positive=True)
 
 
+def _coarse_sizes(path, v):
+    """A mesh size (mm) or a list of them: the levels of a grid sequence."""
+    if isinstance(v, list):
+        if not v:
+            raise _Bad(path, "expected a mesh size (mm) or a non-empty list of them")
+        sizes = [_pos(f"{path}[{i}]", x) for i, x in enumerate(v)]
+        if len(set(sizes)) != len(sizes):
+            raise _Bad(path, f"a size is given twice: {v!r}")
+        return sorted(sizes, reverse=True)
+    return _pos(path, v)
+
+
 def _int(minimum):
     return lambda path, v: _number(path, v, minimum=minimum, integer=True)
 
@@ -182,8 +194,9 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         # sewn in on the arrested heart)
         "motion": (_choice("with-pressure", "before-pressure"), "with-pressure"),
         # grid sequencing (mvfem/sequence.py): close the same generated scene on a coarser
-        # mesh of this size (mm) first and start from its closed state moved onto this mesh
-        "coarse_start": (_pos, None),
+        # mesh of this size (mm) first and start from its closed state moved onto this mesh;
+        # a list of sizes chains the levels, coarsest first
+        "coarse_start": (_coarse_sizes, None),
     },
     "output": {
         "probes": (None, []),  # checked in _check_probes

@@ -270,6 +270,7 @@ def test_max_exponent_reads_each_law_on_its_own_region():
 
 @pytest.mark.parametrize("changes, what", [
     ({"mesh.size": 4.0, "solver.coarse_start": 3.0}, "not coarser than the mesh"),
+    ({"mesh.size": 4.0, "solver.coarse_start": [6.0, 3.0]}, "3 mm is not coarser than the mesh"),
     ({"mesh.size": 4.0, "solver.coarse_start": 6.0, "solver.method": "load-steps"},
      "needs the pseudo-time method"),
     ({"mesh.size": 4.0, "solver.coarse_start": 6.0, "repair.ring": {"shape": "d-shaped", "size": 28}},
@@ -285,3 +286,24 @@ def test_coarse_start_refuses_what_it_cannot_start(changes, what):
     scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
     with pytest.raises(InputError, match=r"solver\.coarse_start: .*" + what):
         solve(scene.with_changes(changes), progress=False, write=False)
+
+
+def test_coarse_start_levels_chain(tmp_path):
+    """``solver.coarse_start = [5, 4]`` on the 3 mm demo: the 4 mm closure starts from the 5 mm
+    one and the 3 mm from the 4 mm; summary.json nests the levels, each with its own mesh, and
+    the 3 mm closure converges without penetration. (Coarser pairs, 8 -> 6 -> 4 mm, refuse
+    the transfer: edges of the moved state cross triangles.)"""
+    import json
+
+    from mvfem.scene import load_scene
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    r = solve(scene.with_changes({"mesh.size": 3.0, "solver.coarse_start": [4.0, 5.0]}),
+              out=tmp_path / "out", progress=False)
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    seq = s["coarse_start"]
+    assert r.converged and s["max_penetration_mm"] == 0.0
+    assert (seq["size_mm"], seq["coarser"]["size_mm"]) == (4.0, 5.0)
+    assert seq["used"] and seq["coarser"]["used"] and "coarser" not in seq["coarser"]
+    assert seq["coarser"]["cells"] < seq["cells"] < s["cells"]
+    assert seq["wall_time_s"] > seq["coarser"]["wall_time_s"]
