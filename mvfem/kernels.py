@@ -8,7 +8,7 @@ plain C loops, compiled once with the system's C compiler into ``~/.cache/mvfem`
 ``$MVFEM_CACHE``) and loaded with cffi, as FFCx does for the forms. The pair search's narrow
 phase is here too: distances over candidate pairs given by node indices
 (:func:`point_triangle_distance`, :func:`segment_distance`), and the rows of the point terms'
-tangent (:func:`blocks_csr`). Where no compiler is
+tangent (:func:`elements_csr`). Where no compiler is
 available the numpy versions in :mod:`mvfem.contact` are used (same formulas, checked
 against each other in ``tests/test_valve_terms.py``).
 """
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["load", "point_triangle_gradient", "point_triangle_hessian", "edge_edge_energy",
-           "edge_edge_hessian", "point_triangle_distance", "segment_distance", "blocks_csr",
+           "edge_edge_hessian", "point_triangle_distance", "segment_distance", "elements_csr", "csr_missing",
            "hinge_cos_sin", "hinge_energy", "hinge_hessian", "hinge_hessian_add"]
 
 log = logging.getLogger(__name__)
@@ -49,9 +49,11 @@ void hinge_hess(long m, const double *y, const double *c0, const double *s0, con
                 double rel, double *H);
 void hinge_hess_add(long m, const double *y, const double *c0, const double *s0,
                     const double *k, double rel, const int64_t *place, double *vals);
-long blocks_csr(long n, long N, const int64_t *r, const int64_t *c, const int64_t *off,
-                const int64_t *stride, const double *K, const uint8_t *free, int64_t *indptr,
-                int64_t *cols, double *vals, int64_t *work, double *acc);
+long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, double **K,
+                  long N, const uint8_t *free, int64_t *indptr, int64_t *cols, double *vals,
+                  int64_t *work, double *acc);
+long csr_missing(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib,
+                 const int64_t *jb);
 """
 
 _SOURCE = r"""
@@ -414,30 +416,42 @@ void hinge_hess_add(long m, const double *y, const double *c0, const double *s0,
 }
 
 /* The point terms' tangent as CSR rows (3 N of them, the free dofs' entries only, columns
-   sorted): the sum of n 3 x 3 blocks, block q at node row r[q] and node column c[q] with
-   entry (i, j) at K[off[q] + i stride[q] + j]. A block whose row or column node has no free
-   dof is skipped; each entry sums its blocks in the order of q (as the numpy version in
-   mvfem.nodal does). work: 4 N + 1 + n integers, acc: 9 N doubles. Returns the entries. */
-long blocks_csr(long n, long N, const int64_t *r, const int64_t *c, const int64_t *off,
-                const int64_t *stride, const double *K, const uint8_t *free, int64_t *indptr,
-                int64_t *cols, double *vals, int64_t *work, double *acc) {
-  int64_t *start = work, *bucket = work + N + 1, *mark = bucket + n, *slot = mark + N;
-  int64_t *list = slot + N;
+   sorted): the sum of G groups of element blocks, group g of m[g] elements of k[g] nodes
+   nodes[g] (m, k) with stiffness K[g] (m, 3k, 3k), rows node-major. Each entry sums its
+   blocks in the order (group, element, row node, column node), as the numpy version in
+   mvfem.nodal does. Rows are bucketed by element row (a node of an element), not by 3 x 3
+   block: k times fewer bucket entries, and no index arrays built outside.
+   work: 4 N + 1 + sum(m k) integers, acc: 9 N doubles. Returns the entries. */
+long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, double **K,
+                  long N, const uint8_t *free, int64_t *indptr, int64_t *cols, double *vals,
+                  int64_t *work, double *acc) {
+  long n = 0;
+  for (long g = 0; g < G; g++) n += m[g] * k[g];
+  int64_t *start = work, *mark = work + N + 1, *slot = mark + N, *list = slot + N;
+  int64_t *bucket = list + N;                  /* (group, element row) as g 2^40 + e k + a */
 #define SOME(v) (free[3 * (v)] | free[3 * (v) + 1] | free[3 * (v) + 2])
   for (long v = 0; v <= N; v++) start[v] = 0;
-  for (long q = 0; q < n; q++)
-    if (SOME(r[q]) && SOME(c[q])) start[r[q] + 1]++;
+  for (long g = 0; g < G; g++)
+    for (long q = 0; q < m[g] * k[g]; q++)
+      if (SOME(nodes[g][q])) start[nodes[g][q] + 1]++;
   for (long v = 0; v < N; v++) { start[v + 1] += start[v]; mark[v] = start[v]; }
-  for (long q = 0; q < n; q++)        /* each row's blocks, in the order of q */
-    if (SOME(r[q]) && SOME(c[q])) bucket[mark[r[q]]++] = q;
+  for (long g = 0; g < G; g++)            /* each row's element rows, in order */
+    for (long q = 0; q < m[g] * k[g]; q++) {
+      int64_t v = nodes[g][q];
+      if (SOME(v)) bucket[mark[v]++] = ((int64_t)g << 40) + q;
+    }
   for (long v = 0; v < N; v++) mark[v] = -1;
   long nnz = 0;
   indptr[0] = 0;
   for (long v = 0; v < N; v++) {
     long nc = 0;
     for (int64_t p = start[v]; p < start[v + 1]; p++) {
-      int64_t w = c[bucket[p]];
-      if (mark[w] != v) { mark[w] = v; list[nc++] = w; }
+      int64_t g = bucket[p] >> 40, q = bucket[p] & (((int64_t)1 << 40) - 1);
+      const int64_t *el = nodes[g] + (q / k[g]) * k[g];
+      for (long b = 0; b < k[g]; b++) {
+        int64_t w = el[b];
+        if (SOME(w) && mark[w] != v) { mark[w] = v; list[nc++] = w; }
+      }
     }
     for (long a = 1; a < nc; a++) {   /* the row's column nodes, sorted (tens of them) */
       int64_t w = list[a];
@@ -448,11 +462,17 @@ long blocks_csr(long n, long N, const int64_t *r, const int64_t *c, const int64_
     for (long a = 0; a < nc; a++) slot[list[a]] = a;
     for (long a = 0; a < 9 * nc; a++) acc[a] = 0.0;
     for (int64_t p = start[v]; p < start[v + 1]; p++) {
-      int64_t q = bucket[p];
-      double *to = acc + 9 * slot[c[q]];
-      const double *from = K + off[q];
-      for (int i = 0; i < 3; i++)
-        for (int j = 0; j < 3; j++) to[3 * i + j] += from[i * stride[q] + j];
+      int64_t g = bucket[p] >> 40, q = bucket[p] & (((int64_t)1 << 40) - 1);
+      long kk = k[g], e = q / kk, a = q % kk, st = 3 * kk;
+      const int64_t *el = nodes[g] + e * kk;
+      const double *Ke = K[g] + 9 * kk * kk * e + 3 * a * st;
+      for (long b = 0; b < kk; b++) {
+        if (!SOME(el[b])) continue;
+        double *to = acc + 9 * slot[el[b]];
+        const double *from = Ke + 3 * b;
+        for (int i = 0; i < 3; i++)
+          for (int j = 0; j < 3; j++) to[3 * i + j] += from[i * st + j];
+      }
     }
     for (int i = 0; i < 3; i++) {
       if (free[3 * v + i])
@@ -467,6 +487,21 @@ long blocks_csr(long n, long N, const int64_t *r, const int64_t *c, const int64_
   }
 #undef SOME
   return nnz;
+}
+
+/* How many entries of the CSR pattern b (n rows, columns sorted in each row) are not in the
+   pattern a (same rows, columns sorted): a merge of each row pair. */
+long csr_missing(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib,
+                 const int64_t *jb) {
+  long missing = 0;
+  for (long r = 0; r < n; r++) {
+    int64_t p = ia[r], pe = ia[r + 1];
+    for (int64_t q = ib[r]; q < ib[r + 1]; q++) {
+      while (p < pe && ja[p] < jb[q]) p++;
+      if (p == pe || ja[p] != jb[q]) missing++;
+    }
+  }
+  return missing;
 }
 """
 
@@ -525,11 +560,21 @@ def point_triangle_gradient(y: np.ndarray):
     return d, g
 
 
-def point_triangle_hessian(y: np.ndarray, rel: float = 1e-4) -> np.ndarray:
-    """(m, 12, 12) curvature of node-triangle distances (see contact.distance_hessian)."""
+def _out(out, shape) -> np.ndarray:
+    """``out`` (a C-contiguous float64 array of ``shape``, written in place) or a new one."""
+    if out is None:
+        return np.empty(shape)
+    if out.shape != shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float64 array of shape {shape}")
+    return out
+
+
+def point_triangle_hessian(y: np.ndarray, rel: float = 1e-4, out=None) -> np.ndarray:
+    """(m, 12, 12) curvature of node-triangle distances (see contact.distance_hessian), into
+    ``out`` when given."""
     ffi, lib = load()
     y = np.ascontiguousarray(y, dtype=np.float64)
-    H = np.empty((len(y), 12, 12))
+    H = _out(out, (len(y), 12, 12))
     lib.pt_hess(len(y), _ptr(ffi, y), rel, _ptr(ffi, H))
     return H
 
@@ -547,14 +592,16 @@ def edge_edge_energy(y, weight, eps_x, delta: float):
     return E, g, d
 
 
-def edge_edge_hessian(y, weight, eps_x, delta: float, rel: float = 1e-4) -> np.ndarray:
-    """(m, 12, 12) Hessian of the edge-edge barrier (see contact.edge_edge_hessian)."""
+def edge_edge_hessian(y, weight, eps_x, delta: float, rel: float = 1e-4,
+                      out=None) -> np.ndarray:
+    """(m, 12, 12) Hessian of the edge-edge barrier (see contact.edge_edge_hessian), into
+    ``out`` when given."""
     ffi, lib = load()
     y = np.ascontiguousarray(y, dtype=np.float64)
     m = len(y)
     w = np.ascontiguousarray(np.broadcast_to(weight, (m,)), dtype=np.float64)
     e = np.ascontiguousarray(np.broadcast_to(eps_x, (m,)), dtype=np.float64)
-    H = np.empty((m, 12, 12))
+    H = _out(out, (m, 12, 12))
     lib.ee_hess(m, _ptr(ffi, y), _ptr(ffi, w), _ptr(ffi, e), float(delta), rel, _ptr(ffi, H))
     return H
 
@@ -641,22 +688,36 @@ def hinge_hessian_add(y: np.ndarray, c0: np.ndarray, s0: np.ndarray, k: np.ndarr
     return vals
 
 
-def blocks_csr(N: int, free: np.ndarray, r: np.ndarray, c: np.ndarray, off: np.ndarray,
-               stride: np.ndarray, K: np.ndarray):
-    """(indptr, cols, vals) over 3 ``N`` rows of the sum of 3 x 3 blocks: block ``q`` at node
-    row ``r[q]``, node column ``c[q]``, entry (i, j) at ``K[off[q] + i stride[q] + j]`` of the
-    flat ``K``; the entries of dofs not ``free`` ((N, 3)) left out."""
+def elements_csr(N: int, free: np.ndarray, groups) -> tuple[np.ndarray, ...]:
+    """(indptr, cols, vals) over 3 ``N`` rows of the sum of element blocks: ``groups`` a list
+    of (nodes (m, k), stiffness (m, 3k, 3k)); the entries of dofs not ``free`` ((N, 3)) left
+    out, each entry summed in the order (group, element, row node, column node)."""
     ffi, lib = load()
-    r, c, off, stride, K = _i64(r), _i64(c), _i64(off), _i64(stride), _f64(K)
+    groups = [(_i64(nd), _f64(K)) for nd, K in groups if len(nd)]
+    m = np.array([len(nd) for nd, _ in groups], dtype=np.int64)
+    k = np.array([nd.shape[1] for nd, _ in groups], dtype=np.int64)
     fr = np.ascontiguousarray(free, dtype=np.uint8)
-    n = len(r)
+    n_rows = int((m * k).sum())
+    n_blocks = int((m * k * k).sum())
     indptr = np.empty(3 * N + 1, dtype=np.int64)
-    cols = np.empty(9 * n, dtype=np.int64)
-    vals = np.empty(9 * n)
-    work = np.empty(4 * N + 1 + n, dtype=np.int64)
+    cols = np.empty(9 * n_blocks, dtype=np.int64)
+    vals = np.empty(9 * n_blocks)
+    work = np.empty(4 * N + 1 + n_rows, dtype=np.int64)
     acc = np.empty(9 * N)
-    nnz = lib.blocks_csr(n, N, _index(ffi, r), _index(ffi, c), _index(ffi, off),
-                         _index(ffi, stride), _ptr(ffi, K),
-                         ffi.cast("uint8_t *", ffi.from_buffer(fr)), _index(ffi, indptr),
-                         _index(ffi, cols), _ptr(ffi, vals), _index(ffi, work), _ptr(ffi, acc))
+    nodes_p = ffi.new("int64_t *[]", [_index(ffi, nd) for nd, _ in groups] or [ffi.NULL])
+    K_p = ffi.new("double *[]", [_ptr(ffi, K) for _, K in groups] or [ffi.NULL])
+    nnz = lib.elements_csr(len(groups), _index(ffi, m), _index(ffi, k), nodes_p, K_p, N,
+                           ffi.cast("uint8_t *", ffi.from_buffer(fr)), _index(ffi, indptr),
+                           _index(ffi, cols), _ptr(ffi, vals), _index(ffi, work), _ptr(ffi, acc))
     return indptr, cols[:nnz], vals[:nnz]
+
+
+def csr_missing(a, b) -> int:
+    """Entries of the CSR pattern ``b`` ((indptr, cols, ...), columns sorted in each row) that
+    the pattern ``a`` (the same rows) lacks."""
+    ffi, lib = load()
+    ia, ja, ib, jb = _i64(a[0]), _i64(a[1]), _i64(b[0]), _i64(b[1])
+    if len(ia) != len(ib):
+        raise ValueError(f"patterns of {len(ia) - 1} and {len(ib) - 1} rows")
+    return int(lib.csr_missing(len(ia) - 1, _index(ffi, ia), _index(ffi, ja), _index(ffi, ib),
+                               _index(ffi, jb)))
