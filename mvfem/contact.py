@@ -243,6 +243,14 @@ def distance_gradient(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return kernels.point_triangle_gradient(y)
 
 
+def _into(out: np.ndarray | None, H: np.ndarray) -> np.ndarray:
+    """``H``, copied into ``out`` when that is given."""
+    if out is None:
+        return H
+    out[...] = H
+    return out
+
+
 def distance_hessian(y: np.ndarray, rel: float = 1e-4, out: np.ndarray | None = None
                      ) -> np.ndarray:
     """(m, 12, 12) Hessian of the node-triangle distance: central differences of its exact
@@ -253,11 +261,7 @@ def distance_hessian(y: np.ndarray, rel: float = 1e-4, out: np.ndarray | None = 
     if len(y) == 0:
         return np.zeros((0, 12, 12)) if out is None else out
     if kernels.load() is None:
-        H = _distance_hessian_np(y, rel)
-        if out is None:
-            return H
-        out[...] = H
-        return out
+        return _into(out, _distance_hessian_np(y, rel))
     return kernels.point_triangle_hessian(y, rel, out=out)
 
 
@@ -281,11 +285,7 @@ def edge_edge_hessian(y, weight, eps_x, delta: float, rel: float = 1e-4,
     if len(y) == 0:   # (the numpy version's 24 passes over nothing cost 12 ms)
         return np.zeros((0, 12, 12)) if out is None else out
     if kernels.load() is None:
-        H = _edge_edge_hessian_np(y, weight, eps_x, delta, rel)
-        if out is None:
-            return H
-        out[...] = H
-        return out
+        return _into(out, _edge_edge_hessian_np(y, weight, eps_x, delta, rel))
     return kernels.edge_edge_hessian(y, weight, eps_x, delta, rel, out=out)
 
 

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["load", "point_triangle_gradient", "point_triangle_hessian", "edge_edge_energy",
-           "edge_edge_hessian", "point_triangle_distance", "segment_distance", "elements_csr", "csr_missing",
-           "hinge_cos_sin", "hinge_energy", "hinge_hessian", "hinge_hessian_add"]
+           "edge_edge_hessian", "point_triangle_distance", "segment_distance", "elements_csr",
+           "csr_missing", "hinge_cos_sin", "hinge_energy", "hinge_hessian", "hinge_hessian_add"]
 
 log = logging.getLogger(__name__)
 

@@ -182,42 +182,39 @@ class SNESProblem:
         that part are kept as zeros), so the factorisation's analysis is redone only here."""
         from mvfem import kernels
 
-        grow = False
-        if self.comm.rank == 0 and parts:
-            if kernels.load() is not None:
-                grow = any(kernels.csr_missing(self._room, p) for p in parts)
-            else:
-                grow = True  # (the union below is what it would be)
-        grow = self.comm.bcast(grow, root=0)
-        if not grow:
-            return
-        from scipy import sparse
-
         mine = None
-        n = self.A.getSize()[0]
-        if self.comm.rank == 0:
-            union = None
-            for ip, jp in [self._room] + [(p[0], p[1]) for p in parts]:
-                m = sparse.csr_matrix((np.ones(len(jp)), jp, ip), shape=(n, n))
-                union = m if union is None else union + m
-            union.sort_indices()
-            old = len(self._room[1])
-            self._room = (union.indptr.astype(np.int64), union.indices.astype(np.int64))
-            if len(self._room[1]) == old:
-                grow = False  # (no kernels: nothing was missing after all)
-            ranges = self.A.getOwnershipRanges()
-            mine = []
-            for lo, hi in zip(ranges[:-1], ranges[1:]):
-                ip = self._room[0][lo:hi + 1]
-                mine.append((ip - ip[0], self._room[1][ip[0]:ip[-1]]))
-        grow = self.comm.bcast(grow, root=0)
-        if not grow:
+        if self.comm.rank == 0 and parts:
+            if kernels.load() is None or any(kernels.csr_missing(self._room, p) for p in parts):
+                mine = self._union(parts)
+        if not self.comm.bcast(mine is not None, root=0):
             return
         ip, jp = self.comm.scatter(mine, root=0)
         IT = PETSc.IntType
         self.A.setPreallocationCSR((ip.astype(IT), jp.astype(IT)))
         self.A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
         self.regrowths += 1
+
+    def _union(self, parts: list) -> list | None:
+        """Rank 0: the union of the pattern and the CSR ``parts``, kept as the new pattern,
+        split into each rank's rows (local indptr, global columns); None when it is no larger
+        (what the numpy fallback, which has no compiled check, finds out here)."""
+        from scipy import sparse
+
+        n = self.A.getSize()[0]
+        union = None
+        for ip, jp in [self._room] + [(p[0], p[1]) for p in parts]:
+            m = sparse.csr_matrix((np.ones(len(jp)), jp, ip), shape=(n, n))
+            union = m if union is None else union + m
+        if union.nnz == len(self._room[1]):
+            return None
+        union.sort_indices()
+        self._room = (union.indptr.astype(np.int64), union.indices.astype(np.int64))
+        ranges = self.A.getOwnershipRanges()
+        mine = []
+        for lo, hi in zip(ranges[:-1], ranges[1:]):
+            ip = self._room[0][lo:hi + 1]
+            mine.append((ip - ip[0], self._room[1][ip[0]:ip[-1]]))
+        return mine
 
     def _precheck(self, x: PETSc.Vec, y: PETSc.Vec, *args) -> bool:
         """Scale the Newton update (x_new = x - y) to what the point terms allow."""

@@ -1192,3 +1192,76 @@ def test_transfer_between_models_on_any_number_of_ranks():
                          op=MPI.MAX)
     clamped = comm.allreduce(int((~mask).sum()), op=MPI.SUM)
     assert err < 1e-12 and clamped > 0
+
+
+def test_tangent_makes_room_for_new_point_couplings():
+    """The tangent of a problem with point terms that couple dofs outside the forms' pattern
+    is preallocated anew (SNESProblem._make_room) instead of grown by PETSc a row at a time:
+    no mallocs, one re-preallocation per new pattern and none for a pattern seen before, and
+    the matrix the forms' tangent plus the blocks' free entries, against a dense sum (entries
+    of pairs that have parted are zeros)."""
+    from pathlib import Path
+
+    from dolfinx import fem
+    from dolfinx.fem import petsc as fpetsc
+    from mpi4py import MPI
+
+    from mvfem.model import build_model
+    from mvfem.scene import load_scene
+    from mvfem.solver import SNESProblem
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    m = build_model(scene.with_changes({"mesh.size": 5.0}), MPI.COMM_SELF)
+    m.pressure.value = m.p_target
+    view = m.point_terms.view
+    N = len(view.X)
+    rng = np.random.default_rng(5)
+
+    def blocks():   # 4-node elements of nodes far apart: couplings the forms do not have
+        nodes = np.array([rng.choice(N, 4, replace=False) for _ in range(40)])
+        K = rng.normal(size=(40, 12, 12))
+        return [Blocks(nodes, np.zeros((40, 4, 3)), K)]
+
+    current = blocks()
+    m.point_terms.evaluate = lambda x: current
+    pb = SNESProblem(m.residual, m.u, m.bcs, prefix="room_test_", point_terms=m.point_terms,
+                     sparsity=m.sparsity)
+    forms = fpetsc.assemble_matrix(fem.form(ufl_derivative(m)), bcs=m.bcs)
+    forms.assemble()
+    dense_forms = _dense(forms)
+    free = view.free.reshape(-1)
+
+    def expected():
+        ref = dense_forms.copy()
+        for nd, K in zip(current[0].nodes, current[0].stiffness):
+            dofs = (3 * nd[:, None] + np.arange(3)).ravel()
+            ok = free[dofs]
+            ref[np.ix_(dofs[ok], dofs[ok])] += K[np.ix_(ok, ok)]
+        return ref
+
+    try:
+        for step, (new, regrowths) in enumerate([(False, 1), (False, 1), (True, 2)]):
+            if new:
+                current[:] = blocks()
+            pb._jacobian(pb.snes, pb.x, pb.A, pb.A)
+            assert pb.A.getInfo()["mallocs"] == 0, step
+            assert pb.regrowths == regrowths, step
+            got = _dense(pb.A)
+            ref = expected()
+            assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max()), step
+    finally:
+        pb.destroy()
+        forms.destroy()
+
+
+def _dense(A) -> np.ndarray:
+    from scipy import sparse
+
+    ai, aj, av = A.getValuesCSR()
+    return sparse.csr_matrix((av, aj, ai), shape=A.getSize()).toarray()
+
+
+def ufl_derivative(model):
+    import ufl
+
+    return ufl.derivative(model.residual, model.u, ufl.TrialFunction(model.V))
