@@ -11,6 +11,7 @@ import numpy as np
 
 from .generators import SurfaceMesh
 from .io import _raise_from_root, mesh_from_arrays
+from .refine import split
 
 __all__ = ["octasphere", "octasphere_arrays"]
 
@@ -55,15 +56,9 @@ def octasphere_arrays(radius: float = 10.0, refinements: int = 3) -> tuple[np.nd
 
 def _split(points: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One 1-to-4 subdivision on the unit sphere; shared edges get one midpoint."""
-    edges = np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]])
-    unique, inverse = np.unique(np.sort(edges, axis=1), axis=0, return_inverse=True)
-    mid = points[unique[:, 0]] + points[unique[:, 1]]
+    edges, new = split(cells, len(points))
+    mid = points[edges[:, 0]] + points[edges[:, 1]]
     mid /= np.linalg.norm(mid, axis=1)[:, None]
-    m = len(points) + inverse.reshape(3, -1)  # midpoint of edge 01, 12, 20 of each cell
-    v0, v1, v2 = cells.T
-    m01, m12, m20 = m
-    new = np.concatenate([np.stack([v0, m01, m20], axis=1), np.stack([m01, v1, m12], axis=1),
-                          np.stack([m20, m12, v2], axis=1), np.stack([m01, m12, m20], axis=1)])
     return np.concatenate([points, mid]), new
 
 

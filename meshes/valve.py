@@ -203,7 +203,7 @@ def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0
           basal_points: Sequence[Sequence[float]] = ((0.25, 0.3), (0.5, 0.3), (0.75, 0.3)),
           annulus: np.ndarray | None = None, papillary: np.ndarray | None = None,
           anterior_direction: Sequence[float] | None = None,
-          annulus_modes: int = 16, ruling_smoothing: float = 4.0) -> ValveMesh:
+          annulus_modes: int = 16, ruling_smoothing: float = 4.0, refine: int = 0) -> ValveMesh:
     """The open mitral valve: two leaflets hanging from the annulus toward the papillary
     muscles (see the module docstring for the construction).
 
@@ -265,6 +265,12 @@ def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0
             smoothed by a Gaussian of this standard deviation along the annulus, mm; it keeps
             the rulings from crossing where the annulus turns sharply (a D-shaped patient
             annulus's corners).
+        refine: uniform refinements of the mesh after the chordae insertions are placed: each
+            splits every triangle into four at its edges' midpoints, placed on the leaflets'
+            ruled surfaces (so ``size`` 2 refined twice has the edge lengths of ``size`` 0.5,
+            16x the cells). The insertions and the tagged curves are the unrefined mesh's, so
+            the levels are nested meshes of one valve (``mesh.refine``, README "Nested
+            levels").
 
     Returns:
         A :class:`ValveMesh`.
@@ -281,8 +287,9 @@ def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0
                   size=size, free_edge_size=free_edge_size, refine_distance=refine_distance,
                   chordae_spacing=chordae_spacing, annulus_modes=annulus_modes,
                   coaptation_offset=coaptation_offset, closed_depth=closed_depth,
-                  ruling_smoothing=ruling_smoothing)
-    params = {k: (int(v) if k == "annulus_modes" else float(v)) for k, v in params.items()}
+                  ruling_smoothing=ruling_smoothing, refine=refine)
+    params = {k: (int(v) if k in ("annulus_modes", "refine") else float(v))
+              for k, v in params.items()}
     params["papillary_position"] = [float(a) for a in papillary_position]
     params["strut_points"] = [[float(a) for a in p] for p in strut_points]
     params["basal_points"] = [[float(a) for a in p] for p in basal_points]
@@ -388,6 +395,12 @@ def _build_on_root(p: dict, annulus, papillary, anterior_direction):
     t_mesh = time.perf_counter()
 
     ins = _insertions(points, cells, cell_values, edges, edge_values, leaflets, tips, muscle, p)
+    base = {"cells": int(len(cells)), "vertices": int(len(points))}
+    if p["refine"]:
+        points, cells, cell_values, edges, edge_values, off = _refine(
+            points, cells, cell_values, edges, edge_values, leaflets, p["refine"])
+        base["surface_distance_mm"] = off
+    t_refine = time.perf_counter()
 
     # local frame -> given frame
     to_global = lambda x: origin + np.asarray(x) @ frame  # noqa: E731
@@ -414,9 +427,9 @@ def _build_on_root(p: dict, annulus, papillary, anterior_direction):
             "min_quality": q["min_quality"], "mean_quality": q["mean_quality"],
             "cells_min_angle_below_30deg": q["below30"],
             "edge_length_mm": q["edges"],
-            "cells_flipped": stats["flipped"],
+            "cells_flipped": stats["flipped"], "unrefined": base,
             "time_s": {"geometry": t_geom - t_start, "gmsh": stats["gmsh_s"],
-                       "total_root": t_mesh - t_start}}
+                       "refine": t_refine - t_mesh, "total_root": time.perf_counter() - t_start}}
     extras = {"info": info,
               "papillary_tips": to_global(tips), "papillary_muscle": muscle,
               "insertion_points": to_global(ins["points"]),
@@ -449,6 +462,9 @@ def _check(p: dict) -> None:
             raise ValueError(f"valve: {k} must be in [0, 80) degrees, got {p[k]}")
     if p["free_edge_size"] > p["size"]:
         raise ValueError("valve: free_edge_size must not exceed size")
+    if not 0 <= p["refine"] <= 4:
+        raise ValueError(f"valve: refine must be 0 to 4 (each refinement is 4x the cells), "
+                         f"got {p['refine']}")
     if p["annulus_modes"] < 2:
         raise ValueError("valve: annulus_modes must be >= 2")
     pp = p["papillary_position"]
@@ -821,6 +837,72 @@ def _remesh(gmsh, leaflets: dict, p: dict):
         model.setPhysicalName(dim, value, name)
     model.mesh.generate(2)
     return _extract(gmsh, 1), ref_centroids, ref_normals
+
+
+# --- nested refinement -----------------------------------------------------------------------
+
+def _refine(points, cells, cell_values, edges, edge_values, leaflets: dict, times: int):
+    """``times`` 1-to-4 splits of the mesh (local frame), each new node on its leaflet's ruled
+    surface at the mean of its edge's end nodes' surface coordinates ``(tau, r)`` (the free edge
+    stays at ``r = 1``, the annulus at ``r = 0``). Returns the refined ``(points, cells,
+    cell_values, edges, edge_values)`` and the largest distance of an unrefined node from its
+    surface (the gmsh nodes lie on a finely sampled copy of it), mm."""
+    from .refine import split, split_edges
+
+    ann = np.unique(edges[edge_values == _GROUPS["annulus"]])
+    free = np.unique(edges[np.isin(edge_values, [_GROUPS["free_edge_anterior"],
+                                                 _GROUPS["free_edge_posterior"]])])
+    coords, off = {}, 0.0  # tag value -> (n, 2) (tau, r) of the leaflet's nodes, else nan
+    for name, lf in leaflets.items():
+        v = LEAFLETS[name]
+        nodes = np.unique(cells[cell_values == v])
+        tr = np.full((len(points), 2), np.nan)
+        tr[nodes], dist = _surface_coordinates(lf, points[nodes])
+        off = max(off, float(dist.max(initial=0.0)))
+        on = ~np.isnan(tr[:, 0])
+        tr[np.intersect1d(ann, np.flatnonzero(on)), 1] = 0.0
+        tr[np.intersect1d(free, np.flatnonzero(on)), 1] = 1.0
+        coords[v] = tr
+    for _ in range(times):
+        n, m = len(points), len(cells)
+        pairs, children = split(cells, n)
+        mids = children[3 * m:] - n  # each parent cell's three edges (the middle child)
+        new = np.full((len(pairs), 3), np.nan)
+        for name, lf in leaflets.items():
+            v = LEAFLETS[name]
+            mine = np.unique(mids[cell_values == v])  # this leaflet's edges
+            tr = np.vstack([coords[v], np.full((len(pairs), 2), np.nan)])
+            tr[n + mine] = 0.5 * (coords[v][pairs[mine, 0]] + coords[v][pairs[mine, 1]])
+            coords[v] = tr
+            todo = mine[np.isnan(new[mine, 0])]  # an edge of both (a commissural ruling): once
+            new[todo] = lf.point(tr[n + todo, 0], tr[n + todo, 1])
+        points = np.vstack([points, new])
+        cells, cell_values = children, np.tile(cell_values, 4)
+        edges, edge_values = split_edges(edges, pairs, n), np.tile(edge_values, 2)
+    return points, cells, cell_values, edges, edge_values, off
+
+
+def _surface_coordinates(lf: "_Leaflet", x: np.ndarray, iterations: int = 12):
+    """``(tau, r)`` (n, 2) of the points ``x`` on the ruled surface of ``lf`` (the nearest point
+    of a 0.25 %-spaced grid, then Gauss-Newton on the distance, within [0, 1]^2), and the
+    points' distances to it."""
+    from scipy.spatial import cKDTree
+
+    tg, rg = (a.ravel() for a in np.meshgrid(np.linspace(0.0, 1.0, 401),
+                                             np.linspace(0.0, 1.0, 101), indexing="ij"))
+    i = cKDTree(lf.point(tg, rg)).query(x)[1]
+    t, r = tg[i].copy(), rg[i].copy()
+    eps = 1e-7
+    for _ in range(iterations):
+        res = x - lf.point(t, r)
+        jt = (lf.point(t + eps, r) - lf.point(t - eps, r)) / (2 * eps)
+        jr = (lf.point(t, r + eps) - lf.point(t, r - eps)) / (2 * eps)
+        a, b, c = (np.einsum("ij,ij->i", p, q) for p, q in ((jt, jt), (jt, jr), (jr, jr)))
+        f, g = np.einsum("ij,ij->i", jt, res), np.einsum("ij,ij->i", jr, res)
+        det = a * c - b * b
+        t = np.clip(t + (c * f - b * g) / det, 0.0, 1.0)
+        r = np.clip(r + (a * g - b * f) / det, 0.0, 1.0)
+    return np.column_stack([t, r]), np.linalg.norm(x - lf.point(t, r), axis=1)
 
 
 # --- chordae insertions ----------------------------------------------------------------------
