@@ -252,7 +252,7 @@ def _valve(scene: Scene, comm, size: float):
     if "free_edge_size" not in kw:
         kw["free_edge_size"] = size / 2
     try:
-        return valve(comm, size=size, **kw)
+        return valve(comm, size=size, refine=m["refine"], **kw)
     except ValueError as e:
         raise InputError(f"{scene.source}: mesh: {e}") from None
 

@@ -465,42 +465,62 @@ def _coarse_size(scene: Scene):
     return min(c) if isinstance(c, list) else c
 
 
+def _nested(scene: Scene, model: Model) -> bool:
+    """Whether ``scene`` is closed from the closure of its next coarser nested level: a refined
+    valve (``mesh.refine``) with ``solver.nested``, solved in pseudo-time from the open state
+    (a prescribed motion ramps from the open state: solved on the fine mesh alone)."""
+    return bool(scene["mesh"]["refine"] and scene["solver"]["nested"]
+                and _method(model) == "pseudo-time" and not model.motion)
+
+
 def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
-    """Close ``scene`` on the coarser mesh of ``solver.coarse_start`` and move its closed state
-    onto ``model`` (mvfem/sequence.py); what happened, for summary.json ``coarse_start``."""
+    """Close ``scene`` on its next coarser level and move its closed state onto ``model``
+    (mvfem/sequence.py): the mesh refined once less (``mesh.refine``, nested levels), else the
+    mesh of ``solver.coarse_start``. What happened, for summary.json ``coarse_start``."""
     import copy
 
     from mvfem.scene import _make
     from mvfem.sequence import transfer
 
-    hc = float(_coarse_size(scene))
     m = scene["mesh"]
-    where = f"{scene.source}: solver.coarse_start"
-    if m["generator"] == "file":
-        raise InputError(f"{where}: needs a generated mesh (mesh.generator), not a file")
     size = m.get("size") or default_size(m)
-    if hc <= size:
-        raise InputError(f"{where}: {hc:g} mm is not coarser than the mesh ({size:g} mm)")
-    if _method(model) != "pseudo-time":
-        raise InputError(f"{where}: needs the pseudo-time method (a valve: chordae or "
-                         "contact); load steps start from zero pressure")
-    if model.motion:
-        raise InputError(f"{where}: the scene prescribes a motion ({', '.join(model.motion)}), "
-                         "which ramps from the open state")
     raw = copy.deepcopy(scene.raw)
-    levels = scene["solver"]["coarse_start"]
-    coarser = [h for h in levels if h > hc] if isinstance(levels, list) else []
-    if coarser:  # the coarse solve starts from the next level in its turn
-        raw["solver"]["coarse_start"] = coarser
+    raw.setdefault("mesh", {})
+    nested = _nested(scene, model)
+    if nested:
+        level = int(m["refine"]) - 1
+        raw["mesh"]["refine"] = level
+        what = f"the valve refined {level} time(s)" if level else "the unrefined valve"
+        head = {"refine": level, "nested": True}
     else:
-        raw["solver"].pop("coarse_start", None)
-    raw.setdefault("mesh", {})["size"] = hc
+        hc = float(_coarse_size(scene))
+        where = f"{scene.source}: solver.coarse_start"
+        if m["generator"] == "file":
+            raise InputError(f"{where}: needs a generated mesh (mesh.generator), not a file")
+        if hc <= size:
+            raise InputError(f"{where}: {hc:g} mm is not coarser than the mesh ({size:g} mm)")
+        if _method(model) != "pseudo-time":
+            raise InputError(f"{where}: needs the pseudo-time method (a valve: chordae or "
+                             "contact); load steps start from zero pressure")
+        if model.motion:
+            raise InputError(f"{where}: the scene prescribes a motion "
+                             f"({', '.join(model.motion)}), which ramps from the open state")
+        levels = scene["solver"]["coarse_start"]
+        coarser = [h for h in levels if h > hc] if isinstance(levels, list) else []
+        if coarser:  # the coarse solve starts from the next level in its turn
+            raw["solver"]["coarse_start"] = coarser
+        else:
+            raw["solver"].pop("coarse_start", None)
+        raw["mesh"]["size"] = hc
+        raw["mesh"].pop("refine", None)
+        what = f"a {hc:g} mm mesh"
+        head = {"size_mm": hc}
     coarse_scene = _make(raw, scene.source, scene.base_dir)
     t0 = time.perf_counter()
     if comm.rank == 0 and progress:
-        log.info(f"coarse start: closing the valve on a {hc:g} mm mesh first")
+        log.info(f"coarse start: closing {what} first")
     res = solve(coarse_scene, comm=comm, progress=progress, write=False)
-    info = {"size_mm": hc, "converged": bool(res.converged),
+    info = {**head, "converged": bool(res.converged),
             "steps": res.summary["newton_iterations"],
             "cells": res.summary["cells"], "wall_time_s": time.perf_counter() - t0}
     if res.summary.get("coarse_start"):  # its own coarser start, included in wall_time_s
@@ -510,8 +530,10 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
     else:
         info.update(transfer(res.model, model))
     if comm.rank == 0:
+        fine = f"{model.mesh.topology.index_map(2).size_global} cells" if nested \
+            else f"the {size:g} mm mesh"
         line = (f"coarse start: {info['steps']} steps, {info['wall_time_s']:.1f} s; continuing "
-                f"on the {size:g} mm mesh ")
+                f"on {fine} ")
         if info["used"]:
             if progress:
                 log.info(line + "from its closed state")
@@ -566,7 +588,9 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         prepare_out_on_root(out, comm)
     model = build_model(scene, comm)
     t_build = time.perf_counter() - t_start
-    seq = _coarse_start(scene, model, comm, progress) if _coarse_size(scene) is not None else None
+    seq = None
+    if _nested(scene, model) or _coarse_size(scene) is not None:
+        seq = _coarse_start(scene, model, comm, progress)
     if seq is not None and seq["used"]:
         initial = None
     if initial is not None and not model.motion and len(initial) == len(model.u.x.array):

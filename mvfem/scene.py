@@ -123,6 +123,9 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         "length": (_length, 20.0),
         "size": (_length, None),
         "refinements": (_int(0), 3),  # octasphere
+        # valve: uniform 1-to-4 splits of the generated mesh, new nodes on the leaflets'
+        # surfaces (meshes.valve refine); the coarser levels are nested meshes of one valve
+        "refine": (_int(0), 0),
         "file": (_str, None),
         "labels": (None, None),  # checked in _check_mesh
         # generator = "valve" (meshes.valve); geometry defaults there, healthy adult numbers
@@ -197,6 +200,10 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         # mesh of this size (mm) first and start from its closed state moved onto this mesh;
         # a list of sizes chains the levels, coarsest first
         "coarse_start": (_coarse_sizes, None),
+        # a refined valve (mesh.refine = n): close the unrefined mesh first and each finer
+        # level from the one below (nested meshes; mvfem/sequence.py); false: from the open
+        # state on the finest mesh alone
+        "nested": (_bool, True),
     },
     "output": {
         "probes": (None, []),  # checked in _check_probes
@@ -318,6 +325,11 @@ def _check_region(path: str, region: dict) -> dict:
 
 
 def _check_mesh(mesh: dict, base_dir: Path) -> None:
+    if mesh["refine"] and mesh["generator"] != "valve":
+        raise _Bad("mesh.refine", "refines generated valves only (generator = \"valve\")")
+    if mesh["refine"] > 4:
+        raise _Bad("mesh.refine", f"at most 4 (each refinement is 4x the cells), "
+                   f"got {mesh['refine']}")
     if mesh["generator"] == "file":
         if not mesh["file"]:
             raise _Bad("mesh.file", "required when generator = \"file\"")

@@ -21,6 +21,14 @@ fine mesh, leaves the fine solve the end game only. Three things make that start
 
 Smoothing the transferred displacement (Jacobi sweeps) made the crushed cells worse (chords
 across a fold shorten): not used.
+
+Nested levels (``mesh.refine``, session 17) use the same transfer and start: the fine mesh is
+the coarse one split 1-to-4, so the coarse nodes move exactly and each new node goes with the
+coarse triangle it came from. The transferred state has no crushed cells, yet its residual
+is still several times the load (8x on the demo refined once; the same with the new nodes on
+the coarse flat triangles instead of the curved surface): the stress jumps between coarse
+triangles are unbalanced at the new nodes. The fine solve still needs 120-180 pseudo-time
+steps on the demo refined once and ~310 refined twice (README, "Nested levels").
 """
 
 from __future__ import annotations

@@ -109,11 +109,9 @@ class SNESProblem:
             pattern = J + sparsity
         self.L = fem.form(F, **kw)
         self.a = fem.form(J, **kw)
-        self.A = fpetsc.create_matrix(fem.form(pattern, **kw) if pattern is not None
-                                      else self.a)
-        if sparsity is not None:  # insert the pattern: the first assembly drops unused room
-            fpetsc.assemble_matrix(self.A, fem.form(sparsity, **kw))
-            self.A.assemble()
+        self._pattern = (fem.form(pattern, **kw) if pattern is not None else self.a,
+                         fem.form(sparsity, **kw) if sparsity is not None else None)
+        self.A = self.forms_matrix()
         self.Pi = fem.form(potential, **kw) if potential is not None else None
         self.P = fem.form(load, **kw) if load is not None else None
         self._pv = fpetsc.create_vector(self.P) if self.P is not None else None
@@ -156,6 +154,18 @@ class SNESProblem:
         except PETSc.Error as e:
             raise ValueError(f"PETSc rejected the options {options or {}} (error code "
                              f"{e.ierr})") from None
+
+    def forms_matrix(self) -> PETSc.Mat:
+        """A new matrix with the pattern of the forms' tangent and of ``sparsity`` (no point
+        terms' couplings), zero."""
+        from dolfinx.fem import petsc as fpetsc
+
+        pattern, sparsity = self._pattern
+        A = fpetsc.create_matrix(pattern)
+        if sparsity is not None:  # insert the pattern: the first assembly drops unused room
+            fpetsc.assemble_matrix(A, sparsity)
+            A.assemble()
+        return A
 
     def _gather_pattern(self):
         """The matrix's nonzero pattern, every row in the global numbering, on rank 0
