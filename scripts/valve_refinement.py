@@ -2,12 +2,19 @@
 against the finest one.
 
     mpirun -n 2 python scripts/valve_refinement.py --out results/refinement [--sizes 3,2,1.5,1]
+    python scripts/valve_refinement.py --out results/nested --refine 2 [--open 1]
 
 Closes `mvfem demo`'s scene at every size (mm; the free edge gets half of it), writes the
 finest closed valve as a surface (closed_<size>.vtu, leaflet cell data) and measures every
 coarser closed valve against it with the closed-state error of the `[reference]` scene key
 (mean, 95th percentile, Hausdorff, leaflet with leaflet), beside the valve metrics and the
 wall time. Prints a table (README, "Mesh refinement") and writes refinement.csv.
+
+With ``--refine N`` the levels are the demo's mesh (``--sizes``: one size) refined 0 to N times
+(``mesh.refine``, nested meshes), each closed from the closure of the level below
+(``solver.nested``; a level's wall time includes the coarser levels' solves), the finest the
+reference (README, "Nested levels"); ``--open L`` also closes the levels up to L from the open
+state (``solver.nested = false``).
 """
 
 from __future__ import annotations
@@ -38,34 +45,66 @@ def closed_surface(result, path: Path) -> None:
     model.comm.Barrier()
 
 
+def _steps(seq: dict) -> str:
+    """The coarser levels' pseudo-time steps of a nested solve, coarsest first ("-" if none)."""
+    steps = []
+    while seq:
+        steps.append(str(seq["steps"]))
+        seq = seq.get("coarser")
+    return "+".join(reversed(steps)) or "-"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="results/refinement")
-    p.add_argument("--sizes", default="3,2,1.5,1", help="mesh sizes, mm (the finest is the "
-                   "reference)")
+    p.add_argument("--sizes", default=None, help="mesh sizes, mm (the finest is the "
+                   "reference); default 3,2,1.5,1, or the demo's 2 with --refine")
+    p.add_argument("--refine", type=int, default=None, help="levels 0..N of nested refinement "
+                   "of one mesh size instead of several sizes")
+    p.add_argument("--open", type=int, default=-1, help="with --refine: also close the levels "
+                   "up to this one from the open state")
     args = p.parse_args(argv)
     comm = MPI.COMM_WORLD
-    sizes = sorted({float(s) for s in args.sizes.split(",")})
+    sizes = sorted({float(s) for s in (args.sizes or ("2" if args.refine is not None
+                                                      else "3,2,1.5,1")).split(",")})
+    if args.refine is not None and len(sizes) != 1:
+        p.error("--refine takes one mesh size")
     out = Path(args.out)
     if comm.rank == 0:
         prepare_out(out)
     comm.Barrier()
     base = mvfem.load_scene(DEMO)
+    if args.refine is None:  # the finest first: it is the reference
+        runs = [(f"size_{h:g}", {"mesh.size": h}, h) for h in sizes]
+    else:
+        levels = range(args.refine, -1, -1)
+        runs = [(f"refine_{n}", {"mesh.size": sizes[0], "mesh.refine": n}, n) for n in levels]
+        runs += [(f"refine_{n}_open", {"mesh.size": sizes[0], "mesh.refine": n,
+                                       "solver.nested": False}, n)
+                 for n in levels if 0 < n <= args.open]
     rows = []
-    reference = out / f"closed_{sizes[0]:g}.vtu"
-    for size in sizes:
-        changes = {"mesh.size": size}
-        if size != sizes[0]:
+    reference = out / f"closed_{runs[0][0]}.vtu"
+    for name, changes, level in runs:
+        if name != runs[0][0]:
             changes["reference.file"] = str(reference.resolve())
         scene = base.with_changes(changes)
-        r = mvfem.solve(scene, out=out / f"size_{size:g}", progress=False)
-        if size == sizes[0]:
+        r = mvfem.solve(scene, out=out / name, progress=False)
+        if name == runs[0][0]:
             closed_surface(r, reference)
         s, v = r.summary, r.summary.get("valve") or {}
         ref = s.get("reference") or {}
-        rows.append({"size_mm": size, "cells": s["cells"], "dofs": s["dofs"],
+        t = s["timing"]
+        seq = s.get("coarse_start") or {}
+        head = ({"size_mm": level} if args.refine is None else
+                {"refine": level, "start": "open" if name.endswith("open") or not level
+                 else "nested", "coarser_steps": _steps(seq)})
+        rows.append({**head, "cells": s["cells"], "dofs": s["dofs"],
                      "converged": s["converged"], "wall_time_s": round(s["wall_time_s"], 1),
                      "newton_iterations": s["newton_iterations"],
+                     "reference_step_s": round(t["reference_step_s"], 3),
+                     "ratio": round(s["wall_time_s"] / t["reference_step_s"]),
+                     "contact_pairs": (s.get("contact") or {}).get("active_pairs"),
+                     "closest_mm": (s.get("contact") or {}).get("min_distance_mm"),
                      "coaptation_length_mm": v.get("coaptation_length_mm"),
                      "tenting_height_mm": v.get("tenting_height_mm"),
                      "regurgitant_orifice_area_mm2": v.get("regurgitant_orifice_area_mm2"),
