@@ -246,7 +246,9 @@ def _point_outputs(model) -> dict:
                               "active_pairs": pen["active_pairs"],
                               "min_distance_mm": pen["min_distance_mm"],
                               "max_intrusion_mm": pen["max_intrusion_mm"],
-                              "intersections": pen["intersections"]}
+                              "intersections": pen["intersections"],
+                              # full searches for the Verlet candidate lists in the run
+                              "list_builds": model.contact.list_builds}
         if getattr(model.surface, "annulus_curve", None) is not None:
             v = valve_metrics(model, x)
             v.pop("_coapting")
