@@ -863,6 +863,11 @@ def _refine(points, cells, cell_values, edges, edge_values, leaflets: dict, time
         tr[np.intersect1d(ann, np.flatnonzero(on)), 1] = 0.0
         tr[np.intersect1d(free, np.flatnonzero(on)), 1] = 1.0
         coords[v] = tr
+    e = np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]])
+    shortest = float(np.linalg.norm(points[e[:, 0]] - points[e[:, 1]], axis=1).min())
+    if not off < 0.25 * shortest:  # the inversion failed: new nodes would be misplaced
+        raise RuntimeError(f"valve: refine: a mesh node lies {off:.3g} mm off its leaflet's "
+                           f"surface (shortest edge {shortest:.3g} mm)")
     for _ in range(times):
         n, m = len(points), len(cells)
         pairs, children = split(cells, n)
@@ -884,8 +889,8 @@ def _refine(points, cells, cell_values, edges, edge_values, leaflets: dict, time
 
 def _surface_coordinates(lf: "_Leaflet", x: np.ndarray, iterations: int = 12):
     """``(tau, r)`` (n, 2) of the points ``x`` on the ruled surface of ``lf`` (the nearest point
-    of a 0.25 %-spaced grid, then Gauss-Newton on the distance, within [0, 1]^2), and the
-    points' distances to it."""
+    of a 401 x 101 grid over [0, 1]^2, then Gauss-Newton on the distance, kept in [0, 1]^2),
+    and the points' distances to it."""
     from scipy.spatial import cKDTree
 
     tg, rg = (a.ravel() for a in np.meshgrid(np.linspace(0.0, 1.0, 401),
