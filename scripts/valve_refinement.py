@@ -5,7 +5,7 @@ against the finest one.
     python scripts/valve_refinement.py --out results/nested --refine 2 [--open 1]
 
 Closes `mvfem demo`'s scene at every size (mm; the free edge gets half of it), writes the
-finest closed valve as a surface (closed_<size>.vtu, leaflet cell data) and measures every
+finest closed valve as a surface (closed_size_<size>.vtu, leaflet cell data) and measures every
 coarser closed valve against it with the closed-state error of the `[reference]` scene key
 (mean, 95th percentile, Hausdorff, leaflet with leaflet), beside the valve metrics and the
 wall time. Prints a table (README, "Mesh refinement") and writes refinement.csv.

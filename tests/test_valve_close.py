@@ -36,6 +36,19 @@ def _closed(summary: dict) -> None:
     assert summary["contact"]["active_pairs"] > 0 and summary["contact"]["min_distance_mm"] > 0
 
 
+def _same_closure(a, b, metrics: float, mean: float) -> None:
+    """Two closures of one mesh: coaptation length and tenting within ``metrics`` mm, nodes
+    within ``mean`` mm of each other on average."""
+    import numpy as np
+    from mpi4py import MPI
+
+    for key in ("coaptation_length_mm", "tenting_height_mm"):
+        assert abs(a.summary["valve"][key] - b.summary["valve"][key]) < metrics, key
+    d = np.linalg.norm((a.u.x.array - b.u.x.array).reshape(-1, 3), axis=1)
+    comm = MPI.COMM_WORLD
+    assert comm.allreduce(d.sum(), op=MPI.SUM) / comm.allreduce(len(d)) < mean
+
+
 def test_coarse_valve_closes_without_interpenetration(tmp_path):
     """The demo's valve on a 4 mm mesh: converged at 16 kPa, leaflets in contact and not
     through each other, chordae taut, the orifice seen from the atrium closed to within 2 %
@@ -130,9 +143,6 @@ def test_coarse_start_reaches_the_same_closure_in_fewer_steps(demo):
     on average, the commissural folds settling in nearby equilibria, as roundoff alone moves
     the closure from the open state (README, "Wall time"); the 2 mm mesh's own error against
     1 mm is 0.10 mm on average."""
-    import numpy as np
-    from mpi4py import MPI
-
     scene = mvfem.load_scene(DEMO).with_changes({"solver.coarse_start": 4.0})
     r = mvfem.solve(scene, progress=False, write=False)
     s, s0 = r.summary, demo.summary
@@ -141,11 +151,7 @@ def test_coarse_start_reaches_the_same_closure_in_fewer_steps(demo):
     assert seq["cap_raised_at_step"] < s["newton_iterations"]
     assert s["converged"] and s["max_penetration_mm"] == 0.0
     assert s["newton_iterations"] < 0.6 * s0["newton_iterations"]
-    for key in ("coaptation_length_mm", "tenting_height_mm"):
-        assert abs(s["valve"][key] - s0["valve"][key]) < 0.1, key
-    d = np.linalg.norm((r.u.x.array - demo.u.x.array).reshape(-1, 3), axis=1)
-    mean = MPI.COMM_WORLD.allreduce(d.sum(), op=MPI.SUM) / MPI.COMM_WORLD.allreduce(len(d))
-    assert mean < 0.1
+    _same_closure(r, demo, metrics=0.1, mean=0.1)
 
 
 @pytest.mark.slow
@@ -156,9 +162,6 @@ def test_nested_levels_reach_the_closure_from_the_open_state():
     0.05 mm; measured 0.0004 mm on average, 0.02 mm at most) in under 40 % of its pseudo-time
     steps on the refined mesh (measured 118-178 against 651; README "Nested levels"), and
     both are free of penetration. Independent: two routes to one equilibrium."""
-    import numpy as np
-    from mpi4py import MPI
-
     scene = mvfem.load_scene(DEMO).with_changes({"mesh.refine": 1})
     nested = mvfem.solve(scene, progress=False, write=False)
     direct = mvfem.solve(scene.with_changes({"solver.nested": False}), progress=False,
@@ -168,8 +171,4 @@ def test_nested_levels_reach_the_closure_from_the_open_state():
     _closed(s0)
     assert s["coarse_start"]["nested"] and "coarse_start" not in s0
     assert s["newton_iterations"] < 0.4 * s0["newton_iterations"]
-    for key in ("coaptation_length_mm", "tenting_height_mm"):
-        assert abs(s["valve"][key] - s0["valve"][key]) < 0.05, key
-    d = np.linalg.norm((nested.u.x.array - direct.u.x.array).reshape(-1, 3), axis=1)
-    mean = MPI.COMM_WORLD.allreduce(d.sum(), op=MPI.SUM) / MPI.COMM_WORLD.allreduce(len(d))
-    assert mean < 0.01
+    _same_closure(nested, direct, metrics=0.05, mean=0.01)
