@@ -37,7 +37,7 @@ $(STAMP): pyproject.toml Makefile
 demo: setup
 	$(VENV)/bin/mvfem demo --out results/demo
 
-# Speed against error (issue 7): the full sweep, 10-20 min on 2 cores; results/bench/
+# Speed against error (issue 7): the full sweep, 6-20 min on 2 cores; results/bench/
 # (bench.csv, bench_pareto.png, bench.md). One BLAS thread: timings of one solve at a time.
 bench: setup
 	OPENBLAS_NUM_THREADS=1 $(VENV)/bin/mvfem bench --out results/bench
