@@ -934,14 +934,14 @@ def lumped_mass(model: Model):
 
     v = ufl.TestFunction(model.V)
     dx = ufl.dx(domain=model.mesh)
+    row_sums = fem.form(ufl.dot(ufl.as_vector((1.0, 1.0, 1.0)), v) * dx)
     if model.V.ufl_element().degree() == 1:
-        one = ufl.as_vector((1.0, 1.0, 1.0))
-        m = fpetsc.assemble_vector(fem.form(ufl.dot(one, v) * dx))
+        m = fpetsc.assemble_vector(row_sums)
         m.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
     else:
         M = fpetsc.assemble_matrix(fem.form(ufl.inner(ufl.TrialFunction(model.V), v) * dx))
         M.assemble()
-        m = fpetsc.create_vector(fem.form(ufl.dot(ufl.as_vector((1.0, 1.0, 1.0)), v) * dx))
+        m = fpetsc.create_vector(row_sums)  # the same ghosted layout
         M.getDiagonal(m)
         M.destroy()
         m.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
