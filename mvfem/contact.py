@@ -53,7 +53,7 @@ import numpy as np
 from mvfem.nodal import Blocks, NodalView
 
 __all__ = ["Contact", "closest_point_on_triangles", "segment_distance", "barrier",
-           "distance_gradient", "distance_hessian"]
+           "distance_gradient", "distance_hessian", "project_psd"]
 
 log = logging.getLogger(__name__)
 
@@ -429,6 +429,23 @@ def _first_root(coef: np.ndarray, touching, samples: int = 16) -> np.ndarray:
     return out
 
 
+def project_psd(K: np.ndarray) -> np.ndarray:
+    """Each symmetric block of ``K`` (m, n, n) replaced, in place, by its positive
+    semidefinite part: the eigenvalues below zero set to zero (IPC's projected Newton).
+
+    The barrier's exact Hessian ``b'' dd dd^T + b' d2d`` is indefinite: ``b' < 0`` and the
+    distance's curvature ``d2d`` couples the node with the triangle's rotation. On the demo
+    valve refined twice every one of its 165 000 blocks had a negative eigenvalue, the most
+    negative (-7.8e5) of the order of the largest positive one (1.9e6): pseudo-time's
+    ``k M`` does not outweigh that, and Newton's update can climb the potential."""
+    w, V = np.linalg.eigh(K)
+    neg = w[:, 0] < 0
+    if neg.any():
+        Vn = V[neg]
+        K[neg] = np.einsum("mij,mj,mkj->mik", Vn, np.maximum(w[neg], 0.0), Vn)
+    return K
+
+
 def _normals(x, tri):
     n = np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]])
     return n / np.linalg.norm(n, axis=1)[:, None]
@@ -473,6 +490,10 @@ class Contact:
         self.thickness = float(thickness)
         self.stiffness = float(stiffness)
         self.skin = float(2 * self.thickness if skin is None else skin)
+        #: stiffness blocks projected onto their positive semidefinite part (IPC's projected
+        #: Newton; :func:`project_psd`): set by the solver for one tangent where the exact one
+        #: gave an update that does not descend (:class:`mvfem.solver.PseudoTransient`)
+        self.convex = False
         self._verlet: list[_Lists] = []
         #: how often the candidate lists were built (a full search each)
         self.list_builds = 0
@@ -923,6 +944,8 @@ class Contact:
             nt *= dphi[:, None, None]
             nt += ddphi[:, None, None] * flat[:, :, None] * flat[:, None, :]
             edge_edge_hessian(y_ee, w_ee, eps_ee, self.thickness, out=K[m:])
+            if self.convex:
+                project_psd(K)
             return K
 
         nodes = np.concatenate([np.concatenate([s[:, None], tri], axis=1),

@@ -182,6 +182,16 @@ class PointTerms:
     def __bool__(self) -> bool:
         return bool(self.terms)
 
+    def convexify(self, on: bool) -> bool:
+        """Ask the terms that can (a ``convex`` attribute: contact) for positive semidefinite
+        stiffness blocks (``on``) or their exact Hessians; the blocks are computed afresh at
+        the next evaluation. Returns whether any term can."""
+        able = [t for t in self.terms if hasattr(t, "convex")]
+        for t in able:
+            t.convex = bool(on)
+        self._last_x = None
+        return bool(able)
+
     def positions(self, x_owned: np.ndarray) -> np.ndarray | None:
         u = self.view.gather(x_owned)
         return None if u is None else self.view.X + u

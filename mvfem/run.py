@@ -637,6 +637,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
                               ramp_steps=RAMP_SLACK * model.ramp_steps if hook is not None else 0)
         info = ptc.run()
         load_steps, newton_its = ptc.accepted_steps, len(ptc.history)
+        convexified = ptc.convexified
         if float(model.exponent_cap.value) != MAX_EXPONENT:
             # the soft-capped problem's equilibrium: the true one only where no cell is
             # beyond the cap; else go on with the true cap from here
@@ -650,6 +651,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
                 info = ptc.run()
                 load_steps += ptc.accepted_steps
                 newton_its += len(ptc.history)
+                convexified += ptc.convexified
         final_ok, stop_reason, t_reached = info.converged, ptc.stop_reason, 1.0
     else:
         final_ok, stop_reason, t_reached, load_steps, newton_its = _load_steps(
@@ -692,6 +694,8 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         "stop_reason": stop_reason,
         "timing": timing,
     }
+    if ptc is not None:
+        summary["convexified_tangents"] = convexified
     if model.motion:
         summary["motion"] = {**model.motion, "ramp_steps": model.ramp_steps,
                              "order": s["motion"]}
