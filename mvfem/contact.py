@@ -442,7 +442,7 @@ def project_psd(K: np.ndarray) -> np.ndarray:
     neg = w[:, 0] < 0
     if neg.any():
         Vn = V[neg]
-        K[neg] = np.einsum("mij,mj,mkj->mik", Vn, np.maximum(w[neg], 0.0), Vn)
+        K[neg] = (Vn * np.maximum(w[neg], 0.0)[:, None, :]) @ np.swapaxes(Vn, 1, 2)
     return K
 
 
