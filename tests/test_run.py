@@ -153,6 +153,74 @@ def test_potential_is_the_residuals_primitive(follower):
     assert abs(fd - F.dot(w.vector)) < 1e-6 * abs(F.dot(w.vector))
 
 
+class _DoubleWell:
+    """A point term on node 0's z displacement, ``E = (z^2 - 1)^2 / 4``: its Hessian
+    ``3 z^2 - 1`` is negative for ``|z| < 1/sqrt(3)``, as the contact barrier's is in some
+    directions; ``convex`` clamps it at zero, as contact's blocks are projected."""
+
+    def __init__(self, X):
+        self.X, self.convex = X, False
+
+    def __call__(self, x):
+        from mvfem.nodal import Blocks
+
+        z = x[0, 2] - self.X[0, 2]
+        f = np.zeros((1, 1, 3))
+        f[0, 0, 2] = z ** 3 - z
+        K = np.zeros((1, 3, 3))
+        K[0, 2, 2] = max(3 * z ** 2 - 1, 0.0) if self.convex else 3 * z ** 2 - 1
+        return Blocks(np.zeros((1, 1), dtype=np.int64), f, K, (z ** 2 - 1) ** 2 / 4)
+
+
+def _double_well(convexify: bool):
+    """Pseudo-time on one triangle held by a weak spring (``c u . v`` over it), node 0 in the
+    double well, started beside the hump's top (z = 0.05). Returns (info, solver, z)."""
+    import ufl
+    from dolfinx import fem, mesh
+
+    from mvfem.nodal import NodalView, PointTerms
+    from mvfem.solver import PseudoTransient, SNESProblem
+
+    domain = ufl.Mesh(ufl.VectorElement("Lagrange", ufl.Cell("triangle", geometric_dimension=3),
+                                        1))
+    msh = mesh.create_mesh(MPI.COMM_SELF, np.array([[0, 1, 2]], dtype=np.int64),
+                           np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), domain)
+    V = fem.VectorFunctionSpace(msh, ("Lagrange", 1))
+    u, v = fem.Function(V), ufl.TestFunction(V)
+    c = fem.Constant(msh, 0.01)
+    view = NodalView(V)
+    assert np.allclose(view.X[0], 0.0)
+    pb = SNESProblem(c * ufl.inner(u, v) * ufl.dx, u, [], prefix=f"well{int(convexify)}_",
+                     point_terms=PointTerms(view, [_DoubleWell(view.X)]),
+                     potential=0.5 * c * ufl.inner(u, u) * ufl.dx)
+    try:
+        w = u.vector.copy()
+        w.set(1.0)
+        pb.set_proximal(1.0, weights=w, centre=u.vector.copy())
+        u.x.array[2] = 0.05
+        ptc = PseudoTransient(pb, k0=0.5, atol=1e-10, max_steps=100, convexify=convexify)
+        info = ptc.run()
+        return info, ptc, float(u.x.array[2])
+    finally:
+        pb.destroy()
+
+
+def test_pseudo_time_convexifies_where_newton_climbs():
+    """In Newton's regime (k below its start) with ``k`` smaller than the well's negative
+    curvature, the exact tangent's update points up the hump (``F . du > 0``): it is refused
+    however far it is shortened. Solved again with the convexified term it descends: no
+    refusal, and the bottom of the well, where z^3 - z + c z / 18 = 0 (the spring on node 0
+    once the other nodes' z are condensed out of the P1 mass matrix: c (1/12 - 1/36))."""
+    info, ptc, z = _double_well(True)
+    assert info.converged
+    assert ptc.convexified >= 1
+    assert all(r.accepted for r in ptc.history)
+    assert abs(z + np.sqrt(1 - 0.01 / 18)) < 1e-9
+    info, ptc, z = _double_well(False)  # the same start without: a refusal, every halving up
+    assert info.converged and ptc.convexified == 0
+    assert not all(r.accepted for r in ptc.history)
+
+
 def test_merit_change_is_the_work_of_the_residual_on_a_valve():
     """The pseudo-time end game judges an update by the change of its merit: the change of the
     strain, bending, chordae and contact energies minus the pressure's work along the update
