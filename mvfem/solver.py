@@ -626,6 +626,15 @@ class PseudoTransient:
                     return r_new < r
                 tol = self.energy_rtol * abs(E)
                 return dE < -tol or (dE <= tol and r_new < r)
+            def newton_update() -> None:
+                """``du = -(K(x) + k M)^-1 F(x)``, with ``F(x)`` in ``rhs``."""
+                pb.evaluate_tangent(x, k)
+                t0 = time.perf_counter()
+                ksp.setOperators(pb.A)
+                ksp.solve(rhs, du)
+                self.solve_s += time.perf_counter() - t0
+                du.scale(-1.0)
+
             ramped = self.ramp is None
             while r > self.atol or not ramped:
                 if its >= self.max_steps:
@@ -651,12 +660,7 @@ class PseudoTransient:
                     r = pb.evaluate_residual(x)  # the Dirichlet rows now hold x - g
                     E = None
                 pb.b.copy(rhs)  # F(x), still in b from the last evaluation at x
-                pb.evaluate_tangent(x, k)
-                t0 = time.perf_counter()
-                ksp.setOperators(pb.A)
-                ksp.solve(rhs, du)
-                self.solve_s += time.perf_counter() - t0
-                du.scale(-1.0)
+                newton_update()
                 if self.convexify and k < self.k0 and pb.point_terms \
                         and rhs.dot(du) > 0 and pb.point_terms.convexify(True):
                     # the contact barrier's exact Hessian is indefinite (its curvature term
@@ -667,12 +671,7 @@ class PseudoTransient:
                     # converge faster where they do descend (IPC projects always: the demo
                     # took 292 steps, not 255)
                     try:
-                        pb.evaluate_tangent(x, k)
-                        t0 = time.perf_counter()
-                        ksp.setOperators(pb.A)
-                        ksp.solve(rhs, du)
-                        self.solve_s += time.perf_counter() - t0
-                        du.scale(-1.0)
+                        newton_update()
                         self.convexified += 1
                         log.debug(f"    convexified tangent at residual {r:.3g}")
                     finally:
