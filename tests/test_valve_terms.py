@@ -1208,6 +1208,26 @@ def test_transfer_of_a_rigid_motion_is_rigid():
     assert np.abs((Xf + Uf)[on] - Xf[on] @ A.T).max() < 1e-10
 
 
+
+def test_transfer_without_offsets_lands_on_the_coarse_surface():
+    """``offsets=False`` (the fallback where the carried offsets make edges cross): each fine
+    node goes to its closest point on the coarse reference surface, carried by the coarse
+    deformation; for a flat coarse square (two triangles in z = 0) under an affine map that
+    is the map of the node's (x, y, 0), whatever its height."""
+    from mvfem.sequence import transfer_nodes
+
+    Xc = np.array([[0.0, 0, 0], [4, 0, 0], [4, 4, 0], [0, 4, 0]])
+    cc = np.array([[0, 1, 2], [0, 2, 3]])
+    rng = np.random.default_rng(3)
+    Xf = np.c_[rng.uniform(0.2, 3.8, (40, 2)), rng.uniform(-0.3, 0.3, 40)]
+    A = np.array([[1.1, 0.2, 0.0], [0.0, 0.9, 0.3], [0.1, 0.0, 1.2]])
+    Uf, dist = transfer_nodes(Xc, cc, Xc @ A.T - Xc, Xf, offsets=False)
+    assert np.abs(dist - np.abs(Xf[:, 2])).max() < 1e-12
+    on = Xf * [1.0, 1.0, 0.0]
+    assert np.abs(Xf + Uf - on @ A.T).max() < 1e-12
+    Uf, _ = transfer_nodes(Xc, cc, Xc @ A.T - Xc, Xf)  # with offsets: off the surface
+    assert np.abs(Xf + Uf - on @ A.T).max() > 0.1
+
 @pytest.mark.mpi
 def test_transfer_between_models_on_any_number_of_ranks():
     """mvfem.sequence.transfer from the 6 mm demo model to the 4 mm one, collective: a coarse
