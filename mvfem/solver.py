@@ -626,6 +626,7 @@ class PseudoTransient:
                     return r_new < r
                 tol = self.energy_rtol * abs(E)
                 return dE < -tol or (dE <= tol and r_new < r)
+
             def newton_update() -> None:
                 """``du = -(K(x) + k M)^-1 F(x)``, with ``F(x)`` in ``rhs``."""
                 pb.evaluate_tangent(x, k)
