@@ -572,7 +572,7 @@ class PseudoTransient:
     #: in pseudo-time (before Newton's regime), refuse updates that raise the potential
     descend: bool = True
     energy_rtol: float = 1e-13
-    #: in Newton's regime (``k < k0``), an update that does not descend (``F . du >= 0``:
+    #: in Newton's regime (``k < k0``), an update that does not descend (``F . du > 0``:
     #: the tangent is indefinite there) is solved again, once, with the point terms' blocks
     #: projected onto their positive semidefinite part (:meth:`PointTerms.convexify`)
     convexify: bool = True
