@@ -437,7 +437,24 @@ def project_psd(K: np.ndarray) -> np.ndarray:
     distance's curvature ``d2d`` couples the node with the triangle's rotation. On the demo
     valve refined twice every one of its 165 000 blocks had a negative eigenvalue, the most
     negative (-7.8e5) of the order of the largest positive one (1.9e6): pseudo-time's
-    ``k M`` does not outweigh that, and Newton's update can climb the potential."""
+    ``k M`` does not outweigh that, and Newton's update can climb the potential.
+
+    Long stacks are split over the kernels' threads (:func:`mvfem.kernels.threads`; numpy's
+    ``eigh`` releases the GIL), block by block the same result."""
+    from mvfem import kernels
+
+    n = kernels.threads() if len(K) > 4096 else 1
+    if n > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        cuts = np.linspace(0, len(K), n + 1).astype(int)
+        with ThreadPoolExecutor(n) as pool:
+            list(pool.map(lambda ab: _project_psd(K[ab[0]:ab[1]]), zip(cuts[:-1], cuts[1:])))
+        return K
+    return _project_psd(K)
+
+
+def _project_psd(K: np.ndarray) -> np.ndarray:
     w, V = np.linalg.eigh(K)
     neg = w[:, 0] < 0
     if neg.any():
@@ -938,11 +955,16 @@ class Contact:
         # (Gauss-Newton) Newton converged linearly and the demo needed twice the iterations
         # (written in place: at 0.5 mm, 146 000 pairs, the concatenated copies took 50 ms)
         def stiffness() -> np.ndarray:
+            from mvfem import kernels
+
             K = np.empty((m + me, 12, 12))
             y = np.concatenate([x[s][:, None, :], x[tri]], axis=1).reshape(m, 12)
-            nt = distance_hessian(y, out=K[:m])
-            nt *= dphi[:, None, None]
-            nt += ddphi[:, None, None] * flat[:, :, None] * flat[:, None, :]
+            if m and kernels.load() is not None:  # the same, in one compiled pass
+                kernels.point_triangle_stiffness(y, dphi, ddphi, flat, out=K[:m])
+            else:
+                nt = distance_hessian(y, out=K[:m])
+                nt *= dphi[:, None, None]
+                nt += ddphi[:, None, None] * flat[:, :, None] * flat[:, None, :]
             edge_edge_hessian(y_ee, w_ee, eps_ee, self.thickness, out=K[m:])
             if self.convex:
                 project_psd(K)

@@ -25,15 +25,19 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["load", "point_triangle_gradient", "point_triangle_hessian", "edge_edge_energy",
+__all__ = ["load", "point_triangle_gradient", "point_triangle_hessian",
+           "point_triangle_stiffness", "edge_edge_energy",
            "edge_edge_hessian", "point_triangle_distance", "segment_distance", "elements_csr",
-           "csr_missing", "hinge_cos_sin", "hinge_energy", "hinge_hessian", "hinge_hessian_add"]
+           "csr_missing", "threads", "hinge_cos_sin", "hinge_energy", "hinge_hessian",
+           "hinge_hessian_add"]
 
 log = logging.getLogger(__name__)
 
 _CDEF = """
 void pt_grad(long m, const double *y, double *d, double *g);
 void pt_hess(long m, const double *y, double rel, double *H);
+void pt_stiff(long m, const double *y, double rel, const double *dphi, const double *ddphi,
+              const double *dd, double *H);
 void ee_energy(long m, const double *y, const double *w, const double *eps, double delta,
                double *E, double *g, double *d);
 void ee_hess(long m, const double *y, const double *w, const double *eps, double delta,
@@ -50,16 +54,37 @@ void hinge_hess(long m, const double *y, const double *c0, const double *s0, con
 void hinge_hess_add(long m, const double *y, const double *c0, const double *s0,
                     const double *k, double rel, const int64_t *place, double *vals);
 long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, double **K,
-                  long N, const uint8_t *free, int64_t *indptr, int64_t *cols, double *vals,
-                  int64_t *work, double *acc);
+                  long N, const uint8_t *fr, int64_t *indptr, int64_t *cols, double *vals,
+                  int64_t *work);
 long csr_missing(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib,
                  const int64_t *jb);
+int set_threads(int n);
 """
 
 _SOURCE = r"""
 #include <math.h>
 #include <stdint.h>
+#include <stdlib.h>
 #include <string.h>
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+/* loops over pairs (hinges, rows) run on OpenMP threads where the library was built with
+   OpenMP and they are long enough to pay for the fork; each iteration writes its own
+   outputs, so the results do not depend on the number of threads */
+#define PAR _Pragma("omp parallel for schedule(static) if (m > 512)")
+
+/* the number of threads of the parallel loops (n > 0 sets it); 1 without OpenMP */
+int set_threads(int n) {
+#ifdef _OPENMP
+  if (n > 0) omp_set_num_threads(n);
+  return omp_get_max_threads();
+#else
+  (void)n;
+  return 1;
+#endif
+}
 
 static double dot3(const double *a, const double *b) { return a[0]*b[0] + a[1]*b[1] + a[2]*b[2]; }
 static void sub3(const double *a, const double *b, double *c) {
@@ -117,6 +142,7 @@ static double pt_one(const double *y, double *g) {
 }
 
 void pt_grad(long m, const double *y, double *d, double *g) {
+  PAR
   for (long i = 0; i < m; i++) d[i] = pt_one(y + 12 * i, g + 12 * i);
 }
 
@@ -177,20 +203,41 @@ static void symmetrise12(double *h) {
     }
 }
 
+/* the curvature of one node-triangle distance into h (12 x 12) */
+static void pt_hess_one(const double *y, double rel, double *h) {
+  double yy[12], gp[12], gm[12], g0[12];
+  memcpy(yy, y, sizeof yy);
+  int type = pt_type(yy);
+  double d = pt_fixed(yy, type, g0), step = rel * d > 1e-12 ? rel * d : 1e-12;
+  for (int j = 0; j < 12; j++) {
+    double keep = yy[j];
+    yy[j] = keep + step; pt_fixed(yy, type, gp);
+    yy[j] = keep - step; pt_fixed(yy, type, gm);
+    yy[j] = keep;
+    for (int r = 0; r < 12; r++) h[12 * r + j] = (gp[r] - gm[r]) / (2 * step);
+  }
+  symmetrise12(h);
+}
+
 void pt_hess(long m, const double *y, double rel, double *H) {
+  PAR
+  for (long i = 0; i < m; i++) pt_hess_one(y + 12 * i, rel, H + 144 * i);
+}
+
+/* the barrier's blocks dphi d2d + ddphi dd dd^T of node-triangle pairs (dd (m, 12) the
+   distances' gradients), as contact.Contact builds them in numpy: the same operations in
+   the same order, in one pass instead of three over 144 m doubles */
+void pt_stiff(long m, const double *y, double rel, const double *dphi, const double *ddphi,
+              const double *dd, double *H) {
+  PAR
   for (long i = 0; i < m; i++) {
-    double yy[12], gp[12], gm[12], g0[12], *h = H + 144 * i;
-    memcpy(yy, y + 12 * i, sizeof yy);
-    int type = pt_type(yy);
-    double d = pt_fixed(yy, type, g0), step = rel * d > 1e-12 ? rel * d : 1e-12;
-    for (int j = 0; j < 12; j++) {
-      double keep = yy[j];
-      yy[j] = keep + step; pt_fixed(yy, type, gp);
-      yy[j] = keep - step; pt_fixed(yy, type, gm);
-      yy[j] = keep;
-      for (int r = 0; r < 12; r++) h[12 * r + j] = (gp[r] - gm[r]) / (2 * step);
+    double *h = H + 144 * i;
+    const double *g = dd + 12 * i;
+    pt_hess_one(y + 12 * i, rel, h);
+    for (int r = 0; r < 12; r++) {
+      double a = ddphi[i] * g[r];
+      for (int c = 0; c < 12; c++) h[12 * r + c] = h[12 * r + c] * dphi[i] + a * g[c];
     }
-    symmetrise12(h);
   }
 }
 
@@ -279,12 +326,14 @@ static double ee_one(const double *y, double w, double eps, double delta, double
 
 void ee_energy(long m, const double *y, const double *w, const double *eps, double delta,
                double *E, double *g, double *d) {
+  PAR
   for (long i = 0; i < m; i++)
     E[i] = ee_one(y + 12 * i, w[i], eps[i], delta, g + 12 * i, d + i);
 }
 
 void ee_hess(long m, const double *y, const double *w, const double *eps, double delta,
              double rel, double *H) {
+  PAR
   for (long i = 0; i < m; i++) {
     double yy[12], gp[12], gm[12], g0[12], d, dummy, *h = H + 144 * i;
     memcpy(yy, y + 12 * i, sizeof yy);
@@ -310,8 +359,9 @@ void ee_hess(long m, const double *y, const double *w, const double *eps, double
    gather of the pairs' coordinates cost as much as the distances) */
 void pt_dist(long m, const double *x, const int64_t *cells, const int64_t *s, const int64_t *t,
              double *d) {
-  double bary[3];
+  PAR
   for (long k = 0; k < m; k++) {
+    double bary[3];
     const int64_t *c = cells + 3 * t[k];
     d[k] = closest_tri(x + 3 * s[k], x + 3 * c[0], x + 3 * c[1], x + 3 * c[2], bary);
   }
@@ -320,8 +370,9 @@ void pt_dist(long m, const double *x, const int64_t *cells, const int64_t *s, co
 /* distances of the segments edges[i[k]] and edges[j[k]] (edges (e, 2) node indices) */
 void ee_dist(long m, const double *x, const int64_t *edges, const int64_t *i, const int64_t *j,
              double *d) {
-  double s, t;
+  PAR
   for (long k = 0; k < m; k++) {
+    double s, t;
     const int64_t *a = edges + 2 * i[k], *b = edges + 2 * j[k];
     d[k] = seg_closest(x + 3 * a[0], x + 3 * a[1], x + 3 * b[0], x + 3 * b[1], &s, &t);
   }
@@ -357,6 +408,7 @@ static void hinge_angle(const double *y, double *cs, double *sn, double *g) {
 }
 
 void hinge_cos_sin(long m, const double *y, double *c, double *s) {
+  PAR
   for (long i = 0; i < m; i++) hinge_angle(y + 12 * i, c + i, s + i, NULL);
 }
 
@@ -364,6 +416,7 @@ void hinge_cos_sin(long m, const double *y, double *c, double *s) {
    c0 and sine s0 */
 void hinge_energy(long m, const double *y, const double *c0, const double *s0,
                   const double *k, double *E, double *g) {
+  PAR
   for (long i = 0; i < m; i++) {
     double cs, sn, *gi = g + 12 * i;
     hinge_angle(y + 12 * i, &cs, &sn, gi);
@@ -399,20 +452,31 @@ static void hinge_hess_one(const double *y, double c0, double s0, double k, doub
 
 void hinge_hess(long m, const double *y, const double *c0, const double *s0, const double *k,
                 double rel, double *H) {
+  PAR
   for (long i = 0; i < m; i++) hinge_hess_one(y + 12 * i, c0[i], s0[i], k[i], rel, H + 144 * i);
 }
 
 /* the Hessians summed into a fixed sparse pattern: entry q of hinge i is added to
-   vals[place[144 i + q]] (skipped where place is negative: a fixed dof) */
+   vals[place[144 i + q]] (skipped where place is negative: a fixed dof). The Hessians of a
+   chunk of hinges are computed in parallel, then added in the hinges' order, so the sums do
+   not depend on the number of threads. */
 void hinge_hess_add(long m, const double *y, const double *c0, const double *s0,
                     const double *k, double rel, const int64_t *place, double *vals) {
-  double h[144];
-  for (long i = 0; i < m; i++) {
-    hinge_hess_one(y + 12 * i, c0[i], s0[i], k[i], rel, h);
-    const int64_t *p = place + 144 * i;
-    for (int q = 0; q < 144; q++)
-      if (p[q] >= 0) vals[p[q]] += h[q];
+  const long chunk = 4096;
+  double *h = malloc(sizeof(double) * 144 * (m < chunk ? (m > 0 ? m : 1) : chunk));
+  if (h == NULL) return;
+  for (long i0 = 0; i0 < m; i0 += chunk) {
+    long n = m - i0 < chunk ? m - i0 : chunk;
+    #pragma omp parallel for schedule(static) if (n > 512)
+    for (long i = 0; i < n; i++)
+      hinge_hess_one(y + 12 * (i0 + i), c0[i0 + i], s0[i0 + i], k[i0 + i], rel, h + 144 * i);
+    for (long i = 0; i < n; i++) {
+      const int64_t *p = place + 144 * (i0 + i);
+      for (int q = 0; q < 144; q++)
+        if (p[q] >= 0) vals[p[q]] += h[144 * i + q];
+    }
   }
+  free(h);
 }
 
 /* The point terms' tangent as CSR rows (3 N of them, the free dofs' entries only, columns
@@ -420,16 +484,42 @@ void hinge_hess_add(long m, const double *y, const double *c0, const double *s0,
    nodes[g] (m, k) with stiffness K[g] (m, 3k, 3k), rows node-major. Each entry sums its
    blocks in the order (group, element, row node, column node), as the numpy version in
    mvfem.nodal does. Rows are bucketed by element row (a node of an element), not by 3 x 3
-   block: k times fewer bucket entries, and no index arrays built outside.
-   work: 4 N + 1 + sum(m k) integers, acc: 9 N doubles. Returns the entries. */
+   block: k times fewer bucket entries, and no index arrays built outside. The node rows are
+   then built in parallel: a first pass counts each one's entries (its column nodes), a
+   second fills them at their offsets, each row's sums in the same order whatever the
+   number of threads.
+   work: 3 N + 1 + sum(m k) integers (the bucketing; every thread has its own marks, column
+   list and accumulator). Returns the entries; -1 where memory ran out. */
+#define SOME(v) (fr[3 * (v)] | fr[3 * (v) + 1] | fr[3 * (v) + 2])
+#define NFREE(v) (fr[3 * (v)] + fr[3 * (v) + 1] + fr[3 * (v) + 2])
+/* row node v's column nodes (free somewhere), sorted, into list; their count */
+static long row_nodes(long v, const int64_t *start, const int64_t *bucket, const int64_t *k,
+                      int64_t **nodes, const uint8_t *fr, int64_t *mark, int64_t *list) {
+  long nc = 0;
+  for (int64_t p = start[v]; p < start[v + 1]; p++) {
+    int64_t g = bucket[p] >> 40, q = bucket[p] & (((int64_t)1 << 40) - 1);
+    const int64_t *el = nodes[g] + (q / k[g]) * k[g];
+    for (long b = 0; b < k[g]; b++) {
+      int64_t w = el[b];
+      if (SOME(w) && mark[w] != v) { mark[w] = v; list[nc++] = w; }
+    }
+  }
+  for (long a = 1; a < nc; a++) {   /* the row's column nodes, sorted (tens of them) */
+    int64_t w = list[a];
+    long b = a - 1;
+    while (b >= 0 && list[b] > w) { list[b + 1] = list[b]; b--; }
+    list[b + 1] = w;
+  }
+  return nc;
+}
+
 long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, double **K,
-                  long N, const uint8_t *free, int64_t *indptr, int64_t *cols, double *vals,
-                  int64_t *work, double *acc) {
+                  long N, const uint8_t *fr, int64_t *indptr, int64_t *cols, double *vals,
+                  int64_t *work) {
   long n = 0;
   for (long g = 0; g < G; g++) n += m[g] * k[g];
-  int64_t *start = work, *mark = work + N + 1, *slot = mark + N, *list = slot + N;
-  int64_t *bucket = list + N;                  /* (group, element row) as g 2^40 + e k + a */
-#define SOME(v) (free[3 * (v)] | free[3 * (v) + 1] | free[3 * (v) + 2])
+  int64_t *start = work, *mark = work + N + 1, *count = mark + N;
+  int64_t *bucket = count + N;                 /* (group, element row) as g 2^40 + e k + a */
   for (long v = 0; v <= N; v++) start[v] = 0;
   for (long g = 0; g < G; g++)
     for (long q = 0; q < m[g] * k[g]; q++)
@@ -440,54 +530,72 @@ long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, d
       int64_t v = nodes[g][q];
       if (SOME(v)) bucket[mark[v]++] = ((int64_t)g << 40) + q;
     }
-  for (long v = 0; v < N; v++) mark[v] = -1;
-  long nnz = 0;
-  indptr[0] = 0;
-  for (long v = 0; v < N; v++) {
-    long nc = 0;
-    for (int64_t p = start[v]; p < start[v + 1]; p++) {
-      int64_t g = bucket[p] >> 40, q = bucket[p] & (((int64_t)1 << 40) - 1);
-      const int64_t *el = nodes[g] + (q / k[g]) * k[g];
-      for (long b = 0; b < k[g]; b++) {
-        int64_t w = el[b];
-        if (SOME(w) && mark[w] != v) { mark[w] = v; list[nc++] = w; }
-      }
+  int nt = 1;
+#ifdef _OPENMP
+  if (n > 4096) nt = omp_get_max_threads();
+#endif
+  long NN = N > 0 ? N : 1;
+  int64_t *scratch = malloc(sizeof(int64_t) * 3 * NN * nt);   /* marks, list, slots */
+  double *accs = malloc(sizeof(double) * 9 * NN * nt);
+  if (scratch == NULL || accs == NULL) { free(scratch); free(accs); return -1; }
+  #pragma omp parallel num_threads(nt)
+  {
+    int id = 0;
+#ifdef _OPENMP
+    id = omp_get_thread_num();
+#endif
+    int64_t *tm = scratch + 3 * NN * id, *tl = tm + NN, *ts = tl + NN;
+    double *ta = accs + 9 * NN * id;
+    for (long v = 0; v < N; v++) tm[v] = -1;
+    #pragma omp for schedule(static)
+    for (long v = 0; v < N; v++) {      /* entries per row of node v: its free column dofs */
+      long nc = row_nodes(v, start, bucket, k, nodes, fr, tm, tl), c = 0;
+      for (long a = 0; a < nc; a++) c += NFREE(tl[a]);
+      count[v] = c;
     }
-    for (long a = 1; a < nc; a++) {   /* the row's column nodes, sorted (tens of them) */
-      int64_t w = list[a];
-      long b = a - 1;
-      while (b >= 0 && list[b] > w) { list[b + 1] = list[b]; b--; }
-      list[b + 1] = w;
-    }
-    for (long a = 0; a < nc; a++) slot[list[a]] = a;
-    for (long a = 0; a < 9 * nc; a++) acc[a] = 0.0;
-    for (int64_t p = start[v]; p < start[v + 1]; p++) {
-      int64_t g = bucket[p] >> 40, q = bucket[p] & (((int64_t)1 << 40) - 1);
-      long kk = k[g], e = q / kk, a = q % kk, st = 3 * kk;
-      const int64_t *el = nodes[g] + e * kk;
-      const double *Ke = K[g] + 9 * kk * kk * e + 3 * a * st;
-      for (long b = 0; b < kk; b++) {
-        if (!SOME(el[b])) continue;
-        double *to = acc + 9 * slot[el[b]];
-        const double *from = Ke + 3 * b;
+    #pragma omp single
+    {
+      indptr[0] = 0;
+      for (long v = 0; v < N; v++)
         for (int i = 0; i < 3; i++)
-          for (int j = 0; j < 3; j++) to[3 * i + j] += from[i * st + j];
-      }
+          indptr[3 * v + i + 1] = indptr[3 * v + i] + (fr[3 * v + i] ? count[v] : 0);
     }
-    for (int i = 0; i < 3; i++) {
-      if (free[3 * v + i])
+    for (long v = 0; v < N; v++) tm[v] = -1;
+    #pragma omp for schedule(static)
+    for (long v = 0; v < N; v++) {
+      long nc = row_nodes(v, start, bucket, k, nodes, fr, tm, tl);
+      for (long a = 0; a < nc; a++) ts[tl[a]] = a;
+      for (long a = 0; a < 9 * nc; a++) ta[a] = 0.0;
+      for (int64_t p = start[v]; p < start[v + 1]; p++) {
+        int64_t g = bucket[p] >> 40, q = bucket[p] & (((int64_t)1 << 40) - 1);
+        long kk = k[g], e = q / kk, a = q % kk, st = 3 * kk;
+        const int64_t *el = nodes[g] + e * kk;
+        const double *Ke = K[g] + 9 * kk * kk * e + 3 * a * st;
+        for (long b = 0; b < kk; b++) {
+          if (!SOME(el[b])) continue;
+          double *to = ta + 9 * ts[el[b]];
+          const double *from = Ke + 3 * b;
+          for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++) to[3 * i + j] += from[i * st + j];
+        }
+      }
+      for (int i = 0; i < 3; i++) {
+        if (!fr[3 * v + i]) continue;
+        int64_t at = indptr[3 * v + i];
         for (long a = 0; a < nc; a++)
           for (int j = 0; j < 3; j++)
-            if (free[3 * list[a] + j]) {
-              cols[nnz] = 3 * list[a] + j;
-              vals[nnz++] = acc[9 * a + 3 * i + j];
+            if (fr[3 * tl[a] + j]) {
+              cols[at] = 3 * tl[a] + j;
+              vals[at++] = ta[9 * a + 3 * i + j];
             }
-      indptr[3 * v + i + 1] = nnz;
+      }
     }
   }
-#undef SOME
-  return nnz;
+  free(scratch); free(accs);
+  return indptr[3 * N];
 }
+#undef NFREE
+#undef SOME
 
 /* How many entries of the CSR pattern b (n rows, columns sorted in each row) are not in the
    pattern a (same rows, columns sorted): a merge of each row pair. */
@@ -513,9 +621,44 @@ def _cache_dir() -> Path:
     return Path(os.environ.get("MVFEM_CACHE", Path.home() / ".cache" / "mvfem"))
 
 
+def _threads() -> int:
+    """Threads for the kernels' loops: ``MVFEM_THREADS`` where set, else ``OMP_NUM_THREADS``,
+    else this process's share of the cores it may run on (all of them in a serial run; one
+    each under ``mpirun -n 2`` on two cores: only rank 0 runs the kernels, but the other
+    rank polls for messages meanwhile)."""
+    for var in ("MVFEM_THREADS", "OMP_NUM_THREADS"):
+        try:
+            n = int(os.environ.get(var, ""))
+        except ValueError:
+            continue
+        if n > 0:
+            return n
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:
+        cores = os.cpu_count() or 1
+    mpi = sys.modules.get("mpi4py.MPI")
+    size = mpi.COMM_WORLD.size if mpi is not None else 1
+    return max(1, cores // size)
+
+
+def _compile(src: Path, out: Path) -> bool:
+    """Build the library, with OpenMP where the compiler has it (True), else without."""
+    cc = os.environ.get("CC", "cc")
+    base = [cc, "-O2", "-shared", "-fPIC", str(src), "-o", str(out), "-lm"]
+    try:
+        subprocess.run(base[:1] + ["-fopenmp"] + base[1:], check=True, capture_output=True,
+                       timeout=120)
+        return True
+    except subprocess.CalledProcessError:
+        subprocess.run(base, check=True, capture_output=True, timeout=120)
+        return False
+
+
 def load():
     """The compiled library (cffi), building it on first use; None where that fails (then
-    the numpy versions are used, with one warning)."""
+    the numpy versions are used, with one warning). Its loops run on :func:`_threads`
+    threads where the compiler has OpenMP (:func:`threads`)."""
     global _lib, _tried
     if _tried:
         return _lib
@@ -535,15 +678,24 @@ def load():
                 src = Path(tmp) / "contact.c"
                 src.write_text(_SOURCE)
                 out = Path(tmp) / path.name
-                cc = os.environ.get("CC", "cc")
-                subprocess.run([cc, "-O2", "-shared", "-fPIC", str(src), "-o", str(out), "-lm"],
-                               check=True, capture_output=True, timeout=120)
+                _compile(src, out)
                 os.replace(out, path)  # atomic: concurrent runs may build it too
         _lib = (ffi, ffi.dlopen(str(path)))
+        _lib[1].set_threads(_threads())
     except Exception as e:  # no compiler, no cffi, read-only cache: numpy instead
         log.warning(f"contact kernels not compiled ({type(e).__name__}: {e}); using numpy")
         _lib = None
     return _lib
+
+
+def threads(n: int | None = None) -> int:
+    """The number of threads of the kernels' loops (1 without OpenMP or kernels); ``n`` sets
+    it first. The results do not depend on it (every loop writes its own outputs, and sums
+    run in a fixed order)."""
+    lib = load()
+    if lib is None:
+        return 1
+    return int(lib[1].set_threads(int(n) if n else 0))
 
 
 def _ptr(ffi, a: np.ndarray):
@@ -576,6 +728,18 @@ def point_triangle_hessian(y: np.ndarray, rel: float = 1e-4, out=None) -> np.nda
     y = np.ascontiguousarray(y, dtype=np.float64)
     H = _out(out, (len(y), 12, 12))
     lib.pt_hess(len(y), _ptr(ffi, y), rel, _ptr(ffi, H))
+    return H
+
+
+def point_triangle_stiffness(y: np.ndarray, dphi: np.ndarray, ddphi: np.ndarray,
+                             dd: np.ndarray, rel: float = 1e-4, out=None) -> np.ndarray:
+    """(m, 12, 12) barrier blocks ``dphi d2d + ddphi dd dd^T`` of node-triangle pairs ``y``
+    (m, 12), ``dd`` (m, 12) the distances' gradients, into ``out`` when given."""
+    ffi, lib = load()
+    y, dphi, ddphi, dd = _f64(y), _f64(dphi), _f64(ddphi), _f64(dd)
+    H = _out(out, (len(y), 12, 12))
+    lib.pt_stiff(len(y), _ptr(ffi, y), rel, _ptr(ffi, dphi), _ptr(ffi, ddphi), _ptr(ffi, dd),
+                 _ptr(ffi, H))
     return H
 
 
@@ -702,13 +866,14 @@ def elements_csr(N: int, free: np.ndarray, groups) -> tuple[np.ndarray, ...]:
     indptr = np.empty(3 * N + 1, dtype=np.int64)
     cols = np.empty(9 * n_blocks, dtype=np.int64)
     vals = np.empty(9 * n_blocks)
-    work = np.empty(4 * N + 1 + n_rows, dtype=np.int64)
-    acc = np.empty(9 * N)
+    work = np.empty(3 * N + 1 + n_rows, dtype=np.int64)
     nodes_p = ffi.new("int64_t *[]", [_index(ffi, nd) for nd, _ in groups] or [ffi.NULL])
     K_p = ffi.new("double *[]", [_ptr(ffi, K) for _, K in groups] or [ffi.NULL])
     nnz = lib.elements_csr(len(groups), _index(ffi, m), _index(ffi, k), nodes_p, K_p, N,
                            ffi.cast("uint8_t *", ffi.from_buffer(fr)), _index(ffi, indptr),
-                           _index(ffi, cols), _ptr(ffi, vals), _index(ffi, work), _ptr(ffi, acc))
+                           _index(ffi, cols), _ptr(ffi, vals), _index(ffi, work))
+    if nnz < 0:
+        raise MemoryError("elements_csr: no memory for the threads' scratch")
     return indptr, cols[:nnz], vals[:nnz]
 
 

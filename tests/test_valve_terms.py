@@ -771,6 +771,66 @@ def test_compiled_contact_kernels_match_numpy():
                        rtol=1e-13, atol=1e-14)
 
 
+
+def test_kernel_threads_give_the_results_of_one():
+    """The compiled kernels' loops run on OpenMP threads (mvfem.kernels.threads): with two
+    threads every kernel gives, bit for bit, what one thread gives (each loop writes its own
+    outputs; the tangent's rows and the hinges' sums keep their order), on inputs long enough
+    for the parallel paths; the fused node-triangle blocks equal the numpy three-pass build;
+    the threaded PSD projection equals one projection of the whole stack."""
+    from mvfem import contact, kernels
+
+    if kernels.load() is None:
+        pytest.fail("the contact kernels did not compile (a C compiler is part of make setup)")
+    rng = np.random.default_rng(5)
+    m, N = 6000, 700
+    tri = rng.normal(size=(m, 3, 3))
+    p = tri.mean(axis=1) + rng.normal(scale=1.5, size=(m, 3))
+    y = np.concatenate([p[:, None], tri], axis=1).reshape(m, 12)
+    ye = rng.normal(size=(m, 12)) * 0.3
+    w, eps = rng.uniform(1, 2, m), rng.uniform(1e-3, 1e-1, m)
+    dphi, ddphi = -rng.uniform(1, 2, m), rng.uniform(1, 2, m)
+    x = rng.normal(size=(N, 3))
+    cells = rng.integers(0, N, (m, 3))
+    s, t = rng.integers(0, N, m), rng.integers(0, m, m)
+    edges = cells[:, :2]
+    nodes = rng.integers(0, N, (m, 4))
+    free = rng.random((N, 3)) < 0.9
+    place = rng.integers(-1, 5000, (m, 144))
+    c0, s0, kh = np.cos(rng.normal(size=m)), np.sin(rng.normal(size=m)), rng.uniform(1, 2, m)
+    blocks = rng.normal(size=(m, 12, 12))
+    blocks = blocks + np.swapaxes(blocks, 1, 2)
+
+    def run():
+        d, g = kernels.point_triangle_gradient(y)
+        out = [d, g, kernels.point_triangle_hessian(y),
+               kernels.point_triangle_stiffness(y, dphi, ddphi, g),
+               *kernels.edge_edge_energy(ye, w, eps, 0.5),
+               kernels.edge_edge_hessian(ye, w, eps, 0.5),
+               kernels.point_triangle_distance(x, cells, s, t),
+               kernels.segment_distance(x, edges, s, t),
+               kernels.hinge_hessian_add(y, c0, s0, kh, place, 5000),
+               *kernels.elements_csr(N, free, [(nodes, blocks)]),
+               contact.project_psd(blocks.copy())]
+        return out
+
+    assert kernels.threads(1) == 1
+    one = run()
+    try:
+        assert kernels.threads(2) == 2, "the kernels were built without OpenMP"
+        two = run()
+    finally:
+        kernels.threads(kernels._threads())
+    for a, b in zip(one, two):
+        assert a.shape == b.shape and np.array_equal(a, b)
+    g = one[1]
+    H = contact._into(None, kernels.point_triangle_hessian(y))
+    H *= dphi[:, None, None]
+    H += ddphi[:, None, None] * g[:, :, None] * g[:, None, :]
+    assert np.array_equal(H, one[3])
+    assert np.array_equal(contact._project_psd(blocks.copy()), two[-1])
+    assert one[-2].size > 4096 * 9      # the rows were built on the parallel path
+
 # --- candidate lists (Verlet) against the full search ---------------------------------------
 
 
