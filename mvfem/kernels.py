@@ -59,6 +59,7 @@ long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, d
 long csr_missing(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib,
                  const int64_t *jb);
 int set_threads(int n);
+int team_size(void);
 """
 
 _SOURCE = r"""
@@ -72,18 +73,34 @@ _SOURCE = r"""
 
 /* loops over pairs (hinges, rows) run on OpenMP threads where the library was built with
    OpenMP and they are long enough to pay for the fork; each iteration writes its own
-   outputs, so the results do not depend on the number of threads */
-#define PAR _Pragma("omp parallel for schedule(static) if (m > 512)")
+   outputs, so the results do not depend on the number of threads. The count is this
+   library's own, not OpenMP's global setting: MUMPS sets that to 1 at its first
+   factorisation */
+static int n_threads = 1;
+#define PAR _Pragma("omp parallel for schedule(static) num_threads(n_threads) if (m > 512)")
 
 /* the number of threads of the parallel loops (n > 0 sets it); 1 without OpenMP */
 int set_threads(int n) {
 #ifdef _OPENMP
-  if (n > 0) omp_set_num_threads(n);
-  return omp_get_max_threads();
+  if (n > 0) n_threads = n;
+  return n_threads;
 #else
   (void)n;
   return 1;
 #endif
+}
+
+/* the threads a parallel loop gets (a check that nothing else capped them) */
+int team_size(void) {
+  int size = 1;
+#ifdef _OPENMP
+  #pragma omp parallel num_threads(n_threads)
+  {
+    #pragma omp single
+    size = omp_get_num_threads();
+  }
+#endif
+  return size;
 }
 
 static double dot3(const double *a, const double *b) { return a[0]*b[0] + a[1]*b[1] + a[2]*b[2]; }
@@ -467,7 +484,7 @@ void hinge_hess_add(long m, const double *y, const double *c0, const double *s0,
   if (h == NULL) return;
   for (long i0 = 0; i0 < m; i0 += chunk) {
     long n = m - i0 < chunk ? m - i0 : chunk;
-    #pragma omp parallel for schedule(static) if (n > 512)
+    #pragma omp parallel for schedule(static) num_threads(n_threads) if (n > 512)
     for (long i = 0; i < n; i++)
       hinge_hess_one(y + 12 * (i0 + i), c0[i0 + i], s0[i0 + i], k[i0 + i], rel, h + 144 * i);
     for (long i = 0; i < n; i++) {
@@ -532,7 +549,7 @@ long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, d
     }
   int nt = 1;
 #ifdef _OPENMP
-  if (n > 4096) nt = omp_get_max_threads();
+  if (n > 4096) nt = n_threads;
 #endif
   long NN = N > 0 ? N : 1;
   int64_t *scratch = malloc(sizeof(int64_t) * 3 * NN * nt);   /* marks, list, slots */
