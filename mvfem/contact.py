@@ -440,18 +440,21 @@ def project_psd(K: np.ndarray) -> np.ndarray:
     ``k M`` does not outweigh that, and Newton's update can climb the potential.
 
     Long stacks are split over the kernels' threads (:func:`mvfem.kernels.threads`; numpy's
-    ``eigh`` releases the GIL), block by block the same result."""
+    ``eigh`` releases the GIL), block by block the same result, with OpenBLAS on one thread
+    (:func:`mvfem.kernels.one_blas_thread`)."""
     from mvfem import kernels
 
     n = kernels.threads() if len(K) > 4096 else 1
-    if n > 1:
-        from concurrent.futures import ThreadPoolExecutor
+    with kernels.one_blas_thread():  # (OpenBLAS's own threads only slow 12 x 12 blocks)
+        if n > 1:
+            from concurrent.futures import ThreadPoolExecutor
 
-        cuts = np.linspace(0, len(K), n + 1).astype(int)
-        with ThreadPoolExecutor(n) as pool:
-            list(pool.map(lambda ab: _project_psd(K[ab[0]:ab[1]]), zip(cuts[:-1], cuts[1:])))
-        return K
-    return _project_psd(K)
+            cuts = np.linspace(0, len(K), n + 1).astype(int)
+            with ThreadPoolExecutor(n) as pool:
+                list(pool.map(lambda ab: _project_psd(K[ab[0]:ab[1]]),
+                              zip(cuts[:-1], cuts[1:])))
+            return K
+        return _project_psd(K)
 
 
 def _project_psd(K: np.ndarray) -> np.ndarray:

@@ -835,8 +835,32 @@ def test_kernel_threads_give_the_results_of_one():
     H *= dphi[:, None, None]
     H += ddphi[:, None, None] * g[:, :, None] * g[:, None, :]
     assert np.array_equal(H, one[3])
-    assert np.array_equal(contact._project_psd(blocks.copy()), two[-1])
+    with kernels.one_blas_thread():
+        assert np.array_equal(contact._project_psd(blocks.copy()), two[-1])
     assert one[-2].size > 4096 * 9      # the rows were built on the parallel path
+
+
+def test_one_blas_thread_inside_and_restored_after():
+    """The PSD projection runs OpenBLAS (make setup installs it) on one thread
+    (mvfem.kernels.one_blas_thread) and gives its thread count back afterwards, also when
+    the block raises."""
+    import numpy.linalg  # noqa: F401  (loads the BLAS)
+
+    from mvfem import kernels
+
+    lib = kernels._openblas()
+    assert lib is not None, "no OpenBLAS in this process"
+    before = lib.openblas_get_num_threads()
+    lib.openblas_set_num_threads(2)
+    n = lib.openblas_get_num_threads()   # (2, or 1 on one core)
+    try:
+        with pytest.raises(RuntimeError):
+            with kernels.one_blas_thread():
+                assert lib.openblas_get_num_threads() == 1
+                raise RuntimeError
+        assert lib.openblas_get_num_threads() == n
+    finally:
+        lib.openblas_set_num_threads(before)
 
 # --- candidate lists (Verlet) against the full search ---------------------------------------
 
