@@ -10,7 +10,9 @@ phase is here too: distances over candidate pairs given by node indices
 (:func:`point_triangle_distance`, :func:`segment_distance`), and the rows of the point terms'
 tangent (:func:`elements_csr`). Where no compiler is
 available the numpy versions in :mod:`mvfem.contact` are used (same formulas, checked
-against each other in ``tests/test_valve_terms.py``).
+against each other in ``tests/test_valve_terms.py``). The loops over pairs run on OpenMP
+threads (:func:`threads`; the library is built with ``-fopenmp`` where the compiler has it),
+with the results of one thread, bit for bit.
 """
 
 from __future__ import annotations
@@ -30,8 +32,8 @@ import numpy as np
 __all__ = ["load", "point_triangle_gradient", "point_triangle_hessian",
            "point_triangle_stiffness", "edge_edge_energy",
            "edge_edge_hessian", "point_triangle_distance", "segment_distance", "elements_csr",
-           "csr_missing", "threads", "one_blas_thread", "hinge_cos_sin", "hinge_energy", "hinge_hessian",
-           "hinge_hessian_add"]
+           "csr_missing", "threads", "one_blas_thread", "hinge_cos_sin", "hinge_energy",
+           "hinge_hessian", "hinge_hessian_add"]
 
 log = logging.getLogger(__name__)
 
@@ -76,8 +78,8 @@ _SOURCE = r"""
 /* loops over pairs (hinges, rows) run on OpenMP threads where the library was built with
    OpenMP and they are long enough to pay for the fork; each iteration writes its own
    outputs, so the results do not depend on the number of threads. The count is this
-   library's own, not OpenMP's global setting: MUMPS sets that to 1 at its first
-   factorisation */
+   library's own, not OpenMP's global setting: a valve solve leaves that at 1 (set inside
+   the solver libraries; measured) */
 static int n_threads = 1;
 #define PAR _Pragma("omp parallel for schedule(static) num_threads(n_threads) if (m > 512)")
 
@@ -483,7 +485,16 @@ void hinge_hess_add(long m, const double *y, const double *c0, const double *s0,
                     const double *k, double rel, const int64_t *place, double *vals) {
   const long chunk = 4096;
   double *h = malloc(sizeof(double) * 144 * (m < chunk ? (m > 0 ? m : 1) : chunk));
-  if (h == NULL) return;
+  if (h == NULL) {                     /* no room for a chunk: one hinge at a time */
+    double one[144];
+    for (long i = 0; i < m; i++) {
+      hinge_hess_one(y + 12 * i, c0[i], s0[i], k[i], rel, one);
+      const int64_t *p = place + 144 * i;
+      for (int q = 0; q < 144; q++)
+        if (p[q] >= 0) vals[p[q]] += one[q];
+    }
+    return;
+  }
   for (long i0 = 0; i0 < m; i0 += chunk) {
     long n = m - i0 < chunk ? m - i0 : chunk;
     #pragma omp parallel for schedule(static) num_threads(n_threads) if (n > 512)
