@@ -184,12 +184,17 @@ class PointTerms:
 
     def convexify(self, on: bool) -> bool:
         """Ask the terms that can (a ``convex`` attribute: contact) for positive semidefinite
-        stiffness blocks (``on``) or their exact Hessians; the blocks are computed afresh at
+        stiffness blocks (``on``) or their exact Hessians. Blocks whose stiffness is still to
+        be computed (the last evaluation's, after a residual) take the setting in force when
+        it is; if any was computed under the other setting, the blocks are computed afresh at
         the next evaluation. Returns whether any term can."""
         able = [t for t in self.terms if hasattr(t, "convex")]
+        changed = any(t.convex != bool(on) for t in able)
         for t in able:
             t.convex = bool(on)
-        self._last_x = None
+        if changed and any(hasattr(t, "convex") and not callable(blk._stiffness)
+                           for t, blk in zip(self.terms, self._last)):
+            self._last_x = None
         return bool(able)
 
     def positions(self, x_owned: np.ndarray) -> np.ndarray | None:

@@ -158,23 +158,31 @@ class _DoubleWell:
     ``3 z^2 - 1`` is negative for ``|z| < 1/sqrt(3)``, as the contact barrier's is in some
     directions; ``convex`` clamps it at zero, as contact's blocks are projected."""
 
-    def __init__(self, X):
-        self.X, self.convex = X, False
+    def __init__(self, X, lazy=False):
+        self.X, self.convex, self.lazy = X, False, lazy
+        self.events = []   # ("call", z) of every evaluation, ("K", z, convex) of every tangent
 
     def __call__(self, x):
         from mvfem.nodal import Blocks
 
         z = x[0, 2] - self.X[0, 2]
+        self.events.append(("call", z))
         f = np.zeros((1, 1, 3))
         f[0, 0, 2] = z ** 3 - z
-        K = np.zeros((1, 3, 3))
-        K[0, 2, 2] = max(3 * z ** 2 - 1, 0.0) if self.convex else 3 * z ** 2 - 1
-        return Blocks(np.zeros((1, 1), dtype=np.int64), f, K, (z ** 2 - 1) ** 2 / 4)
+
+        def stiffness():  # (lazy: when first asked for, as contact's are)
+            self.events.append(("K", z, self.convex))
+            K = np.zeros((1, 3, 3))
+            K[0, 2, 2] = max(3 * z ** 2 - 1, 0.0) if self.convex else 3 * z ** 2 - 1
+            return K
+        return Blocks(np.zeros((1, 1), dtype=np.int64), f,
+                      stiffness if self.lazy else stiffness(), (z ** 2 - 1) ** 2 / 4)
 
 
-def _double_well(convexify: bool):
+def _double_well(convexify: bool, early: bool = False, lazy: bool = False):
     """Pseudo-time on one triangle held by a weak spring (``c u . v`` over it), node 0 in the
-    double well, started beside the hump's top (z = 0.05). Returns (info, solver, z)."""
+    double well, started beside the hump's top (z = 0.05); ``early``: projected blocks before
+    Newton's regime too. Returns (info, solver, z, the well)."""
     import ufl
     from dolfinx import fem, mesh
 
@@ -190,17 +198,19 @@ def _double_well(convexify: bool):
     c = fem.Constant(msh, 0.01)
     view = NodalView(V)
     assert np.allclose(view.X[0], 0.0)
+    well = _DoubleWell(view.X, lazy)
     pb = SNESProblem(c * ufl.inner(u, v) * ufl.dx, u, [], prefix=f"well{int(convexify)}_",
-                     point_terms=PointTerms(view, [_DoubleWell(view.X)]),
+                     point_terms=PointTerms(view, [well]),
                      potential=0.5 * c * ufl.inner(u, u) * ufl.dx)
     try:
         w = u.vector.copy()
         w.set(1.0)
         pb.set_proximal(1.0, weights=w, centre=u.vector.copy())
         u.x.array[2] = 0.05
-        ptc = PseudoTransient(pb, k0=0.5, atol=1e-10, max_steps=100, convexify=convexify)
+        ptc = PseudoTransient(pb, k0=0.5, atol=1e-10, max_steps=100, convexify=convexify,
+                              convexify_early=early)
         info = ptc.run()
-        return info, ptc, float(u.x.array[2])
+        return info, ptc, float(u.x.array[2]), well
     finally:
         pb.destroy()
 
@@ -211,14 +221,34 @@ def test_pseudo_time_convexifies_where_newton_climbs():
     however far it is shortened. Solved again with the convexified term it descends: no
     refusal, and the bottom of the well, where z^3 - z + c z / 18 = 0 (the spring on node 0
     once the other nodes' z are condensed out of the P1 mass matrix: c (1/12 - 1/36))."""
-    info, ptc, z = _double_well(True)
+    info, ptc, z, _ = _double_well(True)
     assert info.converged
     assert ptc.convexified >= 1
     assert all(r.accepted for r in ptc.history)
     assert abs(z + np.sqrt(1 - 0.01 / 18)) < 1e-9
-    info, ptc, z = _double_well(False)  # the same start without: a refusal, every halving up
+    info, ptc, z, _ = _double_well(False)  # the same start without: a refusal, every halving up
     assert info.converged and ptc.convexified == 0
     assert not all(r.accepted for r in ptc.history)
+
+
+def test_pseudo_time_projects_before_newtons_regime():
+    """``PseudoTransient.convexify_early``: before Newton's regime every update is solved with
+    the projected blocks, the first one at the start (z = 0.05, where the exact curvature is
+    -0.99); a term whose stiffness is computed when asked for (contact's) is evaluated once
+    there, the projection applied to the blocks at hand, while an eager one is evaluated
+    again; without it the first tangent is the exact one. All reach an equilibrium of the
+    well (z^3 - z + c z / 18 = 0)."""
+    root = np.sqrt(1 - 0.01 / 18)
+    for lazy in (True, False):
+        info, ptc, z, well = _double_well(True, early=True, lazy=lazy)
+        assert info.converged and abs(abs(z) - root) < 1e-9
+        assert ptc.history[0].weight == 0.5        # the first update is before Newton's regime
+        first = [("call", 0.05), ("K", 0.05, True)] if lazy else \
+            [("call", 0.05), ("K", 0.05, False), ("call", 0.05), ("K", 0.05, True)]
+        assert well.events[:len(first)] == first
+    info, ptc, z, well = _double_well(True, early=False, lazy=True)
+    assert info.converged and abs(abs(z) - root) < 1e-9
+    assert well.events[:2] == [("call", 0.05), ("K", 0.05, False)]
 
 
 def test_merit_change_is_the_work_of_the_residual_on_a_valve():
