@@ -672,17 +672,15 @@ def _threads() -> int:
     return max(1, cores // size)
 
 
-def _compile(src: Path, out: Path) -> bool:
-    """Build the library, with OpenMP where the compiler has it (True), else without."""
+def _compile(src: Path, out: Path) -> None:
+    """Build the library, with OpenMP where the compiler has it, else without."""
     cc = os.environ.get("CC", "cc")
     base = [cc, "-O2", "-shared", "-fPIC", str(src), "-o", str(out), "-lm"]
     try:
         subprocess.run(base[:1] + ["-fopenmp"] + base[1:], check=True, capture_output=True,
                        timeout=120)
-        return True
     except subprocess.CalledProcessError:
         subprocess.run(base, check=True, capture_output=True, timeout=120)
-        return False
 
 
 def load():
