@@ -624,15 +624,14 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         if motion is not None:
             hook = _AdaptiveRamp(model, motion, lambda: ptc.history)
         on_step = _PseudoTimeProgress(load_norm, progress)
-        k0, growth = model.stabiliser_scale, {}
+        k0 = model.stabiliser_scale
         if seq is not None and seq["used"]:
-            from mvfem.sequence import START_CAP, START_GROWTH, START_WEIGHT
+            from mvfem.sequence import START_CAP, START_WEIGHT
 
             model.exponent_cap.value = START_CAP
             on_step = _RaiseCap(on_step, model, seq)
             k0 *= START_WEIGHT
-            growth = {"min_growth": START_GROWTH}
-        ptc = PseudoTransient(problem, k0=k0, atol=tight_atol, **growth,
+        ptc = PseudoTransient(problem, k0=k0, atol=tight_atol,
                               max_steps=max_steps, on_step=on_step,
                               max_move=MAX_MOVE * model.length_scale, ramp=hook,
                               ramp_steps=RAMP_SLACK * model.ramp_steps if hook is not None else 0)

@@ -3,7 +3,7 @@
 A fine valve closed from the open state spends most of its pseudo-time steps swinging the
 leaflets shut at the pace the tangent allows (the 1 mm demo: 579-678 steps). The same scene
 on a mesh twice as coarse closes in a fraction of the time; its closed state, moved onto the
-fine mesh, leaves the fine solve the end game only. Four things make that start usable
+fine mesh, leaves the fine solve the end game only. Three things make that start usable
 (measured on the demo at 1 mm from 2 mm, README "Grid sequencing"):
 
 - the transfer (:func:`transfer`): each fine reference node is projected onto the nearest
@@ -20,13 +20,7 @@ fine mesh, leaves the fine solve the end game only. Four things make that start 
   every cell has relaxed below 0.9 of it (the continuation only differs beyond the cap, so
   the residual does not jump when the cap is raised);
 - pseudo-time starts at :data:`START_WEIGHT` x the usual weight: the state is near
-  equilibrium, and the usual first steps are wild;
-- its step grows at least :data:`START_GROWTH`-fold after each accepted step (1.2 from the
-  open state, where a valve swinging shut needs dt to follow its residual): from 1.2-fold the
-  start's weight, 1e4 x the usual, took most of the fine level's steps to fall. Session 22, the
-  demo refined twice, nested: 265 + 111 + 290 steps and 544 s at 1.2, 265 + 98 + 159 steps and
-  386-416 s at 3 on both sequenced levels, the same closed state (with 3 or 2 on the finest
-  level alone, 152 or 173 steps there). From the open state 3 took the demo 319 steps, not 265.
+  equilibrium, and the usual first steps are wild.
 
 Smoothing the transferred displacement (Jacobi sweeps) made the crushed cells worse (chords
 across a fold shorten): not used.
@@ -36,24 +30,20 @@ the coarse one split 1-to-4, so the coarse nodes move exactly and each new node 
 coarse triangle it came from. The transferred state has no crushed cells, yet its residual
 is still several times the load (8x on the demo refined once; the same with the new nodes on
 the coarse flat triangles instead of the curved surface): the stress jumps between coarse
-triangles are unbalanced at the new nodes. The fine solve still needed 120-180 pseudo-time
-steps on the demo refined once and ~310 refined twice (README, "Nested levels"); 98 and 159
-with :data:`START_GROWTH`.
+triangles are unbalanced at the new nodes. The fine solve still needs 120-180 pseudo-time
+steps on the demo refined once and ~310 refined twice (README, "Nested levels").
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["transfer", "transfer_nodes", "START_CAP", "START_WEIGHT", "START_GROWTH"]
+__all__ = ["transfer", "transfer_nodes", "START_CAP", "START_WEIGHT"]
 
 #: the Fung laws' exponent cap while a transferred state relaxes
 START_CAP = 10.0
 #: the first pseudo-time weight of a sequenced start, x the stabiliser scale
 START_WEIGHT = 1e4
-#: a sequenced start's pseudo-time step dt grows at least this much after each accepted step
-#: (``PseudoTransient.min_growth``; 1.2 from the open state)
-START_GROWTH = 3.0
 
 
 def transfer_nodes(Xc: np.ndarray, cells_c: np.ndarray, Uc: np.ndarray, Xf: np.ndarray,

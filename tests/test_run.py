@@ -386,36 +386,18 @@ def test_coarse_start_refuses_what_it_cannot_start(changes, what):
         solve(scene.with_changes(changes), progress=False, write=False)
 
 
-def test_nested_levels_close_a_refined_valve(tmp_path, monkeypatch):
+def test_nested_levels_close_a_refined_valve(tmp_path):
     """``mesh.refine = 1`` (``solver.nested`` by default) on the 5 mm demo valve: the unrefined
     valve is closed first, its closed state carried onto the refined mesh (whose nodes include
     the coarse ones: the transfer moves them exactly, max_distance_mm is the new nodes' offset
     from the coarse triangles, below the sagitta h^2 / (8 R) ~ 0.3 mm of 5 mm edges on the
     ~10 mm radius annulus), and the refined valve converges from it without penetration;
-    summary.json says so, one level. The open level's pseudo-time step grows at least
-    1.2-fold after each accepted step, the sequenced level's START_GROWTH-fold (threefold)."""
-    import mvfem.run
+    summary.json says so, one level."""
     from mvfem.scene import load_scene
-    from mvfem.sequence import START_GROWTH
 
-    runs = []
-
-    class Recorded(mvfem.run.PseudoTransient):
-        def run(self):
-            runs.append(self)
-            return super().run()
-
-    monkeypatch.setattr(mvfem.run, "PseudoTransient", Recorded)
     scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
     r = solve(scene.with_changes({"mesh.size": 5.0, "mesh.refine": 1}), out=tmp_path / "out",
               progress=False)
-    assert len(runs) == 2 and START_GROWTH == 3.0
-    for ptc, growth in zip(runs, (1.2, START_GROWTH)):
-        w = [(a.weight, b.weight) for a, b in zip(ptc.history, ptc.history[1:]) if a.accepted]
-        floor = ptc.k_min * ptc.k0
-        assert len(w) > 5 and all(k1 <= max(k / growth, floor) * (1 + 1e-12) for k, k1 in w)
-        # from the open state dt follows the residual: some steps grow it less than threefold
-        assert any(k1 > max(k / START_GROWTH, floor) * 1.01 for k, k1 in w) == (growth == 1.2)
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
     seq = s["coarse_start"]
     assert r.converged and s["max_penetration_mm"] == 0.0
