@@ -513,10 +513,14 @@ class Contact:
             closed demo valve had 83 edges through its own folds.
         skin: Verlet skin of the candidate lists, mm (default twice the thickness: on the
             demo's recorded calls 0.5, 1, 1.5 and 2 mm gave 7.3, 6.9, 7.3 and 7.9 s of contact
-            search and step limits, 171 to 64 list builds): the admissible pairs closer than
-            ``thickness + skin`` are searched once and reused until the nodes have moved half
-            the skin (see :meth:`_lists`); 0 searches in full at every call. The pairs found
-            are the same either way.
+            search and step limits, 171 to 64 list builds; the thickness itself on meshes
+            whose median edge is shorter than the thickness, where the candidates per node
+            grow as ((thickness + skin) / h)^2: on the demo refined twice, 0.5 mm against 1 mm
+            filtered 0.34 + 1.06 against 1.1 + 3.2 million candidates a call, and took 243.5
+            against 270.0 s of contact in 9 list builds against 4, the same 290 fine steps):
+            the admissible pairs closer than ``thickness + skin`` are searched once and
+            reused until the nodes have moved half the skin (see :meth:`_lists`); 0 searches
+            in full at every call. The pairs found are the same either way.
     """
 
     def __init__(self, view: NodalView, thickness: float, stiffness: float,
@@ -545,6 +549,8 @@ class Contact:
             lengths = np.linalg.norm(view.X[edges[:, 0]] - view.X[edges[:, 1]], axis=1)
             self._max_edge = float(lengths.max(initial=0.0))
             min_edge = float(lengths.min(initial=0.0))
+            if skin is None and len(lengths) and np.median(lengths) < self.thickness:
+                self.skin = self.thickness
         else:
             self.slaves = np.zeros(0, dtype=np.int64)
             self._max_edge = 0.0

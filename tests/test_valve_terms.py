@@ -906,6 +906,22 @@ def _same_blocks(a, b):
     assert np.array_equal(a.stiffness, b.stiffness)
 
 
+def test_contact_skin_is_the_thickness_on_meshes_finer_than_it(valve_view):
+    """The Verlet skin defaults to twice the contact thickness, and to the thickness itself
+    where the reference mesh's median edge is shorter than the thickness (the candidates per
+    node grow as ((thickness + skin) / h)^2); one given explicitly is kept."""
+    from mvfem.contact import Contact
+
+    view, _ = valve_view
+    c = view.cells
+    e = np.concatenate([c[:, [0, 1]], c[:, [1, 2]], c[:, [2, 0]]])
+    median = np.median(np.linalg.norm(view.X[e[:, 0]] - view.X[e[:, 1]], axis=1))
+    assert 0.5 < median < 4.0
+    assert Contact(view, 0.5, 3.2e4).skin == 1.0
+    assert Contact(view, 4.0, 3.2e4).skin == 4.0
+    assert Contact(view, 4.0, 3.2e4, skin=8.0).skin == 8.0
+
+
 @pytest.mark.parametrize("compiled", [True, False])
 def test_contact_lists_find_the_pairs_of_a_full_search(valve_view, compiled, monkeypatch):
     """The leaflets of the closing valve squeezed together in small steps reuse one list build
