@@ -528,7 +528,6 @@ class Contact:
         self.view = view
         self.thickness = float(thickness)
         self.stiffness = float(stiffness)
-        self.skin = float(2 * self.thickness if skin is None else skin)
         #: stiffness blocks projected onto their positive semidefinite part (IPC's projected
         #: Newton; :func:`project_psd`): set by the solver for one tangent where the exact one
         #: gave an update that does not descend (:class:`mvfem.solver.PseudoTransient`)
@@ -541,7 +540,7 @@ class Contact:
         self.keep_lists = 2
         #: (x, lists, node-triangle and edge distances over the lists) of the last filter
         self._memo: tuple | None = None
-        min_edge = 0.0
+        min_edge, median_edge = 0.0, np.inf
         if view.comm.rank == 0:
             self.slaves = np.flatnonzero(view.free.any(axis=1))
             edges = np.concatenate([view.cells[:, [0, 1]], view.cells[:, [1, 2]],
@@ -549,14 +548,15 @@ class Contact:
             lengths = np.linalg.norm(view.X[edges[:, 0]] - view.X[edges[:, 1]], axis=1)
             self._max_edge = float(lengths.max(initial=0.0))
             min_edge = float(lengths.min(initial=0.0))
-            if skin is None and len(lengths) and np.median(lengths) < self.thickness:
-                self.skin = self.thickness
+            median_edge = float(np.median(lengths)) if len(lengths) else np.inf
         else:
             self.slaves = np.zeros(0, dtype=np.int64)
             self._max_edge = 0.0
         # only rank 0 searches, so the defaults need not agree across ranks
         self.exclusion = float(exclusion if exclusion is not None
                                else max(2 * self.thickness, 1.5 * min_edge))
+        self.skin = float(skin if skin is not None else self.thickness
+                          if median_edge < self.thickness else 2 * self.thickness)
         self._excluded = self._excluded_pairs() if view.comm.rank == 0 else None
         #: crossing tests' tolerance: 1e-3 of the longest edge
         self._tol = 1e-3 * max(self._max_edge, 1e-12)
