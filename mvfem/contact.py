@@ -22,8 +22,8 @@ the residual has no jumps: there is no "nearest triangle" to switch between and 
 choose (a nearest-triangle penalty with sides did not get the valve past its first contact,
 Newton cycling between pairings; a bounded quadratic penalty let chordae pull free-edge nodes
 onto the other leaflet, where Newton stalled). The tangent is the exact Hessian, the
-curvature of the distances by central differences of their exact gradients
-(:func:`distance_hessian`, :func:`edge_edge_hessian`).
+distances' curvature in closed form where the kernels are compiled, else by central
+differences of their exact gradients (:func:`distance_hessian`, :func:`edge_edge_hessian`).
 
 No crossing: the energy alone cannot stop an update from carrying a node through a triangle,
 or an edge through an edge, in one jump. :meth:`Contact.step_limit` scales every update so
@@ -253,16 +253,17 @@ def _into(out: np.ndarray | None, H: np.ndarray) -> np.ndarray:
 
 def distance_hessian(y: np.ndarray, rel: float = 1e-4, out: np.ndarray | None = None
                      ) -> np.ndarray:
-    """(m, 12, 12) Hessian of the node-triangle distance: central differences of its exact
-    gradient with steps ``rel`` x the distance, symmetrised (compiled or numpy); written
-    into ``out`` (C-contiguous) when given."""
+    """(m, 12, 12) Hessian of the node-triangle distance: exact where the kernels are
+    compiled (:mod:`mvfem.kernels`), else central differences of its exact gradient with
+    steps ``rel`` x the distance, symmetrised; written into ``out`` (C-contiguous) when
+    given."""
     from mvfem import kernels
 
     if len(y) == 0:
         return np.zeros((0, 12, 12)) if out is None else out
     if kernels.load() is None:
         return _into(out, _distance_hessian_np(y, rel))
-    return kernels.point_triangle_hessian(y, rel, out=out)
+    return kernels.point_triangle_hessian(y, out=out)
 
 
 def barrier_blocks(y: np.ndarray, dphi: np.ndarray, ddphi: np.ndarray, dd: np.ndarray,
@@ -292,16 +293,16 @@ def edge_edge_energy(y: np.ndarray, weight, eps_x, delta: float) -> tuple[np.nda
 
 def edge_edge_hessian(y, weight, eps_x, delta: float, rel: float = 1e-4,
                       out: np.ndarray | None = None) -> np.ndarray:
-    """(m, 12, 12) Hessian of :func:`edge_edge_energy` by central differences of its exact
-    gradient, symmetrised (compiled or numpy); written into ``out`` (C-contiguous) when
-    given."""
+    """(m, 12, 12) Hessian of :func:`edge_edge_energy`: exact where the kernels are compiled
+    (:mod:`mvfem.kernels`), else central differences of its exact gradient with steps
+    ``rel`` x the distance, symmetrised; written into ``out`` (C-contiguous) when given."""
     from mvfem import kernels
 
     if len(y) == 0:   # (the numpy version's 24 passes over nothing cost 12 ms)
         return np.zeros((0, 12, 12)) if out is None else out
     if kernels.load() is None:
         return _into(out, _edge_edge_hessian_np(y, weight, eps_x, delta, rel))
-    return kernels.edge_edge_hessian(y, weight, eps_x, delta, rel, out=out)
+    return kernels.edge_edge_hessian(y, weight, eps_x, delta, out=out)
 
 
 def _fast_triangle_distance(x: np.ndarray, cells: np.ndarray, s: np.ndarray,
