@@ -148,11 +148,16 @@ class NodalView:
         return idx
 
     def dof_indices(self, nodes: np.ndarray) -> np.ndarray:
-        """(m, 3k) global scalar dof indices of node blocks, -1 where a dof is fixed."""
+        """(m, 3k) global scalar dof indices of node blocks, -1 where a dof is fixed: a
+        gather from the table of every node's three, built once (the arithmetic on the
+        blocks took 4 ms a residual at 0.5 mm, 165,000 contact blocks)."""
+        table = getattr(self, "_dof_table", None)
+        if table is None or table[0] is not self.free:
+            dofs = 3 * np.arange(len(self.free))[:, None] + np.arange(3)
+            self._dof_table = table = (self.free, np.where(self.free, dofs, -1)
+                                       .astype(PETSc.IntType))
         nodes = np.asarray(nodes)
-        dofs = 3 * nodes[..., None] + np.arange(3)
-        dofs = np.where(self.free[nodes], dofs, -1)
-        return dofs.reshape(len(nodes), -1).astype(PETSc.IntType)
+        return table[1][nodes].reshape(len(nodes), -1)
 
 
 def add_csr(A: PETSc.Mat, csr) -> None:

@@ -1003,6 +1003,25 @@ def _same_blocks(a, b):
     assert np.array_equal(a.stiffness, b.stiffness)
 
 
+def test_dof_indices_are_three_per_node_and_minus_one_where_fixed(valve_view):
+    """NodalView.dof_indices: node n's dofs are 3n, 3n + 1, 3n + 2 in the blocks' node order,
+    -1 where the dof has a Dirichlet condition (the annulus here), for blocks of any width."""
+    view, _ = valve_view
+    fixed = np.flatnonzero(~view.free.all(axis=1))
+    assert len(fixed) > 10
+    rng = np.random.default_rng(3)
+    for k in (1, 2, 4):
+        nodes = rng.integers(0, len(view.X), (500, k))
+        nodes[:, 0] = rng.choice(fixed, 500)
+        dofs = view.dof_indices(nodes)
+        assert dofs.shape == (500, 3 * k)
+        for e in range(500):
+            for a, n in enumerate(nodes[e]):
+                assert list(dofs[e, 3 * a:3 * a + 3]) == [3 * n + i if view.free[n, i] else -1
+                                                         for i in range(3)]
+        assert np.all(dofs[:, :3] == -1)
+
+
 def test_contact_skin_is_the_thickness_on_meshes_finer_than_it(valve_view):
     """The Verlet skin defaults to twice the contact thickness, and to the thickness itself
     where the reference mesh's median edge is shorter than the thickness (the candidates per
