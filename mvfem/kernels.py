@@ -8,7 +8,7 @@ plain C loops, compiled once with the system's C compiler into ``~/.cache/mvfem`
 phase is here too: distances over candidate pairs given by node indices
 (:func:`point_triangle_distance`, :func:`segment_distance`), and the rows of the point terms'
 tangent (:func:`elements_csr`). The curvatures are exact (``dist_curv``: the Hessian of a
-minimum over closest-point parameters), 2.5-3x faster than the central differences of the
+minimum over closest-point parameters), 2.4-3.4x faster than the central differences of the
 gradient (24 gradients a pair) they replaced, and right where those stepped across the edge
 mollifier's switch. Where no compiler is available the numpy versions in
 :mod:`mvfem.contact` are used (the same formulas, the curvatures by central differences;
