@@ -149,8 +149,8 @@ class NodalView:
 
     def dof_indices(self, nodes: np.ndarray) -> np.ndarray:
         """(m, 3k) global scalar dof indices of node blocks, -1 where a dof is fixed: a
-        gather from the table of every node's three, built once (the arithmetic on the
-        blocks took 4 ms a residual at 0.5 mm, 165,000 contact blocks)."""
+        gather from the table of every node's three, built once (for the 165,000 contact
+        blocks of the 0.5 mm valve 8 ms a residual, against 30 ms of arithmetic on them)."""
         table = getattr(self, "_dof_table", None)
         if table is None or table[0] is not self.free:
             dofs = 3 * np.arange(len(self.free))[:, None] + np.arange(3)
