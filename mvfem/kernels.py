@@ -336,13 +336,30 @@ static double seg_closest(const double *p0, const double *p1, const double *q0,
   return sqrt(dot3(w, w));
 }
 
-/* IPC's log barrier with unit stiffness and its derivative in d */
-static void barrier1(double d, double delta, double *b, double *db) {
-  if (d <= 0) { *b = INFINITY; *db = 0; return; }
-  if (d >= delta) { *b = 0; *db = 0; return; }
+/* IPC's log barrier with unit stiffness and its first two derivatives in d: infinite (no
+   slope) at d <= 0, 0 from d = delta */
+static void barrier1(double d, double delta, double *b, double *db, double *ddb) {
+  if (d <= 0) { *b = INFINITY; *db = *ddb = 0; return; }
+  if (d >= delta) { *b = *db = *ddb = 0; return; }
   double g = d - delta, l = log(d / delta);
   *b = -g * g * l;
   *db = -(2 * g * l + g * g / d);
+  *ddb = -(2 * l + 4 * g / d - g * g / (d * d));
+}
+
+/* IPC's edge-edge mollifier m(c) of c = |ea x eb|^2, ea = a1 - a0, eb = b1 - b0 (y the
+   pair's 12 coordinates), and its first two derivatives in c; gc the gradient of c in y */
+static void ee_mollifier(const double *y, double eps, double *m, double *dm, double *ddm,
+                         double *gc) {
+  double ea[3], eb[3], n[3], dca[3], dcb[3];
+  sub3(y + 3, y, ea); sub3(y + 9, y + 6, eb); cross3(ea, eb, n);
+  double r = dot3(n, n) / eps;
+  cross3(eb, n, dca); cross3(n, ea, dcb);
+  for (int k = 0; k < 3; k++) {
+    gc[k] = -2 * dca[k]; gc[3 + k] = 2 * dca[k]; gc[6 + k] = -2 * dcb[k]; gc[9 + k] = 2 * dcb[k];
+  }
+  *m = 1; *dm = *ddm = 0;
+  if (r < 1) { *m = (2 - r) * r; *dm = 2 * (1 - r) / eps; *ddm = -2 / (eps * eps); }
 }
 
 /* closest-point parameters of a case: fs/ft < 0 free (the lines' own minimiser, given the
@@ -368,20 +385,15 @@ static double ee_one(const double *y, double w, double eps, double delta, double
   double nu[3], dd = d > 1e-300 ? d : 1e-300;
   for (int k = 0; k < 3; k++)
     nu[k] = (a0[k] + s * (a1[k] - a0[k]) - b0[k] - t * (b1[k] - b0[k])) / dd;
-  double ea[3], eb[3], n[3], dca[3], dcb[3];
-  sub3(a1, a0, ea); sub3(b1, b0, eb); cross3(ea, eb, n);
-  double c = dot3(n, n);
-  cross3(eb, n, dca); cross3(n, ea, dcb);
-  double r = c / eps, moll = 1.0, dmoll = 0.0;
-  if (r < 1) { moll = (2 - r) * r; dmoll = 2 * (1 - r) / eps; }
-  double b, db;
-  barrier1(d, delta, &b, &db);
+  double moll, dmoll, ddmoll, gc[12], b, db, ddb;
+  ee_mollifier(y, eps, &moll, &dmoll, &ddmoll, gc);
+  barrier1(d, delta, &b, &db, &ddb);
   double kc = w * dmoll * b, kd = w * moll * db;
   for (int k = 0; k < 3; k++) {
-    g[k] = kc * (-2 * dca[k]) + kd * (1 - s) * nu[k];
-    g[3 + k] = kc * (2 * dca[k]) + kd * s * nu[k];
-    g[6 + k] = kc * (-2 * dcb[k]) - kd * (1 - t) * nu[k];
-    g[9 + k] = kc * (2 * dcb[k]) - kd * t * nu[k];
+    g[k] = kc * gc[k] + kd * (1 - s) * nu[k];
+    g[3 + k] = kc * gc[3 + k] + kd * s * nu[k];
+    g[6 + k] = kc * gc[6 + k] - kd * (1 - t) * nu[k];
+    g[9 + k] = kc * gc[9 + k] - kd * t * nu[k];
   }
   return w * moll * b;
 }
@@ -391,16 +403,6 @@ void ee_energy(long m, const double *y, const double *w, const double *eps, doub
   PAR
   for (long i = 0; i < m; i++)
     E[i] = ee_one(y + 12 * i, w[i], eps[i], delta, g + 12 * i, d + i);
-}
-
-/* IPC's log barrier with unit stiffness and its first two derivatives in d (0 outside
-   0 < d < delta) */
-static void barrier2(double d, double delta, double *b, double *db, double *ddb) {
-  if (!(d > 0 && d < delta)) { *b = *db = *ddb = 0; return; }
-  double g = d - delta, l = log(d / delta);
-  *b = -g * g * l;
-  *db = -(2 * g * l + g * g / d);
-  *ddb = -(2 * l + 4 * g / d - g * g / (d * d));
 }
 
 /* The Hessian of one mollified edge-edge barrier w m(c) b(d), exact, into h (12 x 12):
@@ -418,25 +420,20 @@ static void ee_hess_one(const double *y, double w, double eps, double delta, dou
   if (fs < 0) { beta[nz] = -1; beta[2 + nz] = 1; nz++; }
   if (ft < 0) { beta[4 + nz] = 1; beta[6 + nz] = -1; nz++; }
   double d = dist_curv(y, c, beta, nz, nu, h), b, db, ddb;
-  barrier2(d, delta, &b, &db, &ddb);
-  if (b == 0 && db == 0 && ddb == 0) { memset(h, 0, 144 * sizeof(double)); return; }
-  const double *a0 = y, *a1 = y + 3, *b0 = y + 6, *b1 = y + 9;
-  double ea[3], eb[3], n[3], dca[3], dcb[3], gc[12], gd[12];
-  sub3(a1, a0, ea); sub3(b1, b0, eb); cross3(ea, eb, n);
-  double cc = dot3(n, n);
-  cross3(eb, n, dca); cross3(n, ea, dcb);
-  for (int k = 0; k < 3; k++) {
-    gc[k] = -2 * dca[k]; gc[3 + k] = 2 * dca[k]; gc[6 + k] = -2 * dcb[k]; gc[9 + k] = 2 * dcb[k];
-    for (int q = 0; q < 4; q++) gd[3 * q + k] = c[q] * nu[k];
-  }
-  double r = cc / eps, m = 1, dm = 0, ddm = 0;
-  if (r < 1) { m = (2 - r) * r; dm = 2 * (1 - r) / eps; ddm = -2 / (eps * eps); }
+  if (!(d > 0 && d < delta)) { memset(h, 0, 144 * sizeof(double)); return; }
+  barrier1(d, delta, &b, &db, &ddb);
+  double m, dm, ddm, gc[12], gd[12];
+  ee_mollifier(y, eps, &m, &dm, &ddm, gc);
+  for (int q = 0; q < 4; q++)
+    for (int k = 0; k < 3; k++) gd[3 * q + k] = c[q] * nu[k];
   double kd = w * m * db, kdd = w * m * ddb, kcc = w * ddm * b, kcd = w * dm * db;
   for (int p = 0; p < 12; p++)
     for (int q = 0; q < 12; q++)
       h[12 * p + q] = kd * h[12 * p + q] + kdd * gd[p] * gd[q] + kcc * gc[p] * gc[q]
                       + kcd * (gc[p] * gd[q] + gd[p] * gc[q]);
   if (dm != 0) {   /* w m' b Hc, Hc over (ea, eb) mapped by ea = a1 - a0, eb = b1 - b0 */
+    double ea[3], eb[3];
+    sub3(y + 3, y, ea); sub3(y + 9, y + 6, eb);
     double kc = w * dm * b, A2 = dot3(ea, ea), B2 = dot3(eb, eb), AB = dot3(ea, eb);
     double Caa[9], Cbb[9], Cab[9];
     for (int i = 0; i < 3; i++)

@@ -812,7 +812,7 @@ def test_contact_curvatures_are_exact():
     c = np.sum(np.cross(ea, eb) ** 2, axis=1)
     eps = rng.uniform(0.2, 2, len(ye)) * c    # the mollifier on (eps > c) and off
     eps[:300] = c[:300] / (1 + rng.choice([-1e-5, 1e-5], 300))   # 1e-5 from its switch
-    E, g, dist = kernels.edge_edge_energy(ye, w, eps, delta)
+    dist = kernels.edge_edge_energy(ye, w, eps, delta)[2]
     on = dist < delta
     ye, w, eps = ye[on], w[on], eps[on]
     _, s, t = segment_closest(ye[:, :3], ye[:, 3:6], ye[:, 6:9], ye[:, 9:])
