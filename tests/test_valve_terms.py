@@ -1092,6 +1092,45 @@ def test_contact_lists_find_the_pairs_of_a_full_search(valve_view, compiled, mon
     assert np.array_equal(got[0], i[d < 0.5]) and np.array_equal(got[1], j[d < 0.5])
 
 
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_swept_pairs_are_every_pair_that_may_meet_once(symmetric):
+    """The swept search's pairs are those of a brute-force loop over all pairs: centres within
+    the radii plus the motions, one of the two moving; each once, with its distance (i < j
+    and no pair of a point with itself when both sides are the same points). Motions span
+    the six halving classes, with points exactly on their bounds and still ones."""
+    from mvfem.contact import _swept_pairs
+
+    rng = np.random.default_rng(11)
+    nP = 400
+    P = rng.uniform(0, 10, size=(nP, 3))
+    top = 1.5
+    mP = top * rng.uniform(0, 1, nP) ** 3
+    mP[:40] = top / 2 ** rng.integers(0, 7, 40)       # on the classes' bounds (and below)
+    mP[40:80] = 0.0
+    rP = rng.uniform(0, 0.3, nP)
+    if symmetric:
+        Q, mQ, rQ = P, mP, rP
+    else:
+        nQ = 300
+        Q = rng.uniform(0, 10, size=(nQ, 3))
+        mQ = top * rng.uniform(0, 1, nQ) ** 2
+        mQ[:30] = top / 2 ** rng.integers(0, 7, 30)
+        mQ[30:60] = 0.0
+        rQ = rng.uniform(0, 0.3, nQ)
+    i, j, d = _swept_pairs(P, mP, rP, Q, mQ, rQ, symmetric=symmetric)
+    D = np.linalg.norm(P[:, None] - Q[None], axis=2)
+    may = (D <= rP[:, None] + rQ[None] + mP[:, None] + mQ[None]) \
+        & ((mP[:, None] > 0) | (mQ[None] > 0))
+    if symmetric:
+        may &= np.arange(nP)[:, None] < np.arange(nP)[None]
+    want = set(zip(*np.nonzero(may)))
+    got = list(zip(i.tolist(), j.tolist()))
+    assert len(got) == len(set(got)), "a pair found twice"
+    assert set(got) == want
+    assert len(want) > 500
+    assert np.allclose(d, D[i, j], rtol=1e-14, atol=0)
+
+
 def test_contact_step_limit_on_the_lists_is_the_swept_search(valve_view, monkeypatch):
     """The step limit from the lists equals the swept search's, bit for bit: on the closing
     valve's steps, on random small updates, on updates pushing the closest node of each of a
@@ -1107,7 +1146,8 @@ def test_contact_step_limit_on_the_lists_is_the_swept_search(valve_view, monkeyp
     full = Contact(view, 0.5, 3.2e4, skin=0.0)
     swept = []
     real = contact._swept_pairs
-    monkeypatch.setattr(contact, "_swept_pairs", lambda *a: swept.append(1) or real(*a))
+    monkeypatch.setattr(contact, "_swept_pairs",
+                        lambda *a, **kw: swept.append(1) or real(*a, **kw))
     rng = np.random.default_rng(3)
     x = closing(0.3, 5.5)
     free = view.free.all(axis=1)[:, None]
