@@ -369,9 +369,9 @@ def _swept_pairs(P, mP, rP, Q, mQ, rQ, classes: int = 6, symmetric: bool = False
         radius = 2 * hi + r_pair
         ps = np.flatnonzero((mP > lo) & ((mP <= hi) | (k == 0)))
         cls[ps] = k
-        # this class's points of P against Q's points as slow or slower
-        found.append(search(P, ps, Q, np.flatnonzero(mQ <= hi) if k else np.arange(len(Q)),
-                            radius))
+        # this class's points of P against Q's points as slow or slower (on the first
+        # class, hi = top: every point of Q)
+        found.append(search(P, ps, Q, np.flatnonzero(mQ <= hi), radius))
         if not symmetric:
             # Q's points of this class against P's strictly slower points (or still ones)
             qs = np.flatnonzero((mQ > lo) & ((mQ <= hi) | (k == 0)))
