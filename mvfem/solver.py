@@ -530,8 +530,10 @@ class PseudoTransient:
     grows at least ``min_growth``-fold after every accepted step); a step whose residual is not
     finite (the exponential laws overflowed) or grew more than ``reject``-fold is refused and
     ``k`` multiplied by ``shrink``. Once ``k`` has fallen below its start ``k0`` (Newton's
-    regime), every later update must lower the residual, after up to ``backtracks`` halvings,
-    or it is refused: the end game cannot cycle. After ``restart_after`` refusals in a row there
+    regime), every later update must lower the merit (the potential where the problem has
+    one, which then judges alone: no refusal for the residual's growth, see
+    ``reject_descending``; else the residual), after up to ``backtracks`` halvings, or it is
+    refused: the end game cannot cycle. After ``restart_after`` refusals in a row there
     (the residual is only piecewise smooth where contact pairs change from face to edge), the
     run moves in pseudo-time again from the current state with ``k = restart_weight k0``, at
     most ``restarts`` times. As ``k -> 0`` the steps become Newton's, and the iteration
@@ -572,6 +574,14 @@ class PseudoTransient:
     #: in pseudo-time (before Newton's regime), refuse updates that raise the potential
     descend: bool = True
     energy_rtol: float = 1e-13
+    #: in Newton's regime, refuse an update whose residual grew more than ``reject``-fold
+    #: even where the potential judges it. Off: near a contact pair the barrier's force
+    #: changes fast, so an update that descends the potential can grow the residual
+    #: tenfold; refused, ``k`` grew fourfold at each (seven in a row, 27 to 1.1e5, on the
+    #: demo refined once, its update finally taken growing the residual anyway). Judged by
+    #: the potential alone (backtracking where it rises), the demo refined once took 46-88
+    #: fine steps instead of 72-199 at 15.5-17 kPa (README, "Solving")
+    reject_descending: bool = False
     #: in Newton's regime (``k < k0``), an update that does not descend (``F . du > 0``:
     #: the tangent is indefinite there) is solved again, once, with the point terms' blocks
     #: projected onto their positive semidefinite part (:meth:`PointTerms.convexify`)
@@ -699,9 +709,12 @@ class PseudoTransient:
                 x.copy(trial)
                 trial.axpy(alpha, du)
                 r_new = pb.evaluate_residual(trial)
-                ok = bool(np.isfinite(r_new)) and r_new <= self.reject * r and \
-                    ksp.getConvergedReason() > 0
                 monotone = monotone or k < self.k0
+                # in Newton's regime an update that descends the potential may grow the
+                # residual (below), so there the potential alone judges it
+                judged = monotone and merit is not None and not self.reject_descending
+                ok = bool(np.isfinite(r_new)) and (judged or r_new <= self.reject * r) and \
+                    ksp.getConvergedReason() > 0
                 E_new = None
                 if ok and not monotone and merit is not None and self.descend:
                     # in pseudo-time too an update must not raise the potential: by the

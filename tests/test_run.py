@@ -251,6 +251,92 @@ def test_pseudo_time_projects_before_newtons_regime():
     assert well.events[:2] == [("call", 0.05), ("K", 0.05, False)]
 
 
+class _Wall:
+    """A point term on node 0's z displacement: a constant force ``f`` towards a wall ``g``
+    below, and the contact barrier ``kappa b(d)``, ``b = -(d - delta)^2 log(d / delta)`` for
+    ``d = z + g < delta`` (IPC's, as in :func:`mvfem.contact.barrier`): its force grows fast
+    as ``d`` falls, so an update can descend the potential and grow the residual tenfold."""
+
+    def __init__(self, X, f=1.0, kappa=1000.0, g=1.5, delta=1.0):
+        self.X, self.f, self.kappa, self.g, self.delta = X, f, kappa, g, delta
+
+    def __call__(self, x):
+        from mvfem.nodal import Blocks
+
+        z = x[0, 2] - self.X[0, 2]
+        E, dE, ddE = self.f * z, self.f, 0.0
+        d, dl = z + self.g, self.delta
+        if d <= 0:
+            E = dE = ddE = np.inf
+        elif d < dl:
+            log_ = np.log(d / dl)
+            E += -self.kappa * (d - dl) ** 2 * log_
+            dE += self.kappa * (-2 * (d - dl) * log_ - (d - dl) ** 2 / d)
+            ddE += self.kappa * (-2 * log_ - 4 * (d - dl) / d + (d - dl) ** 2 / d ** 2)
+        f, K = np.zeros((1, 1, 3)), np.zeros((1, 3, 3))
+        f[0, 0, 2], K[0, 2, 2] = dE, ddE
+        return Blocks(np.zeros((1, 1), dtype=np.int64), f, K, E)
+
+    def equilibrium(self, spring):
+        """z where ``f + kappa b'(z + g) + spring z = 0`` (bisection in the barrier's reach)."""
+        from scipy.optimize import brentq
+
+        def force(z):
+            d, dl = z + self.g, self.delta
+            return self.f + self.kappa * (-2 * (d - dl) * np.log(d / dl) - (d - dl) ** 2 / d) \
+                + spring * z
+        return brentq(force, 1e-9 - self.g, self.delta - self.g, xtol=1e-14)
+
+
+def test_newtons_regime_judges_by_the_potential_alone():
+    """In Newton's regime (``k`` below ``k0 = 20``) the update towards the wall grows the
+    residual 70-fold. By default the potential judges it: halved until it descends, taken,
+    no refusal. With ``reject_descending`` (the rule before session 25) it is refused for the
+    residual's growth and ``k`` grows fourfold. Both reach the equilibrium of the wall and the
+    spring (``c / 18`` on node 0, as in the double well)."""
+    import ufl
+    from dolfinx import fem, mesh
+
+    from mvfem.nodal import NodalView, PointTerms
+    from mvfem.solver import PseudoTransient, SNESProblem
+
+    domain = ufl.Mesh(ufl.VectorElement("Lagrange", ufl.Cell("triangle", geometric_dimension=3),
+                                        1))
+    msh = mesh.create_mesh(MPI.COMM_SELF, np.array([[0, 1, 2]], dtype=np.int64),
+                           np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), domain)
+    V = fem.VectorFunctionSpace(msh, ("Lagrange", 1))
+    c = 0.01
+    runs = {}
+    for old in (False, True):
+        u, v = fem.Function(V), ufl.TestFunction(V)
+        view = NodalView(V)
+        wall = _Wall(view.X)
+        cc = fem.Constant(msh, c)
+        pb = SNESProblem(cc * ufl.inner(u, v) * ufl.dx, u, [], prefix=f"wall{int(old)}_",
+                         point_terms=PointTerms(view, [wall]),
+                         potential=0.5 * cc * ufl.inner(u, u) * ufl.dx)
+        try:
+            w = u.vector.copy()
+            w.set(1.0)
+            pb.set_proximal(1.0, weights=w, centre=u.vector.copy())
+            ptc = PseudoTransient(pb, k0=20.0, atol=1e-10, max_steps=200,
+                                  reject_descending=old)
+            info = ptc.run()
+            runs[old] = (info, ptc.history, float(u.x.array[2]))
+        finally:
+            pb.destroy()
+    z_eq = wall.equilibrium(c / 18)
+    for old, (info, history, z) in runs.items():
+        assert info.converged and abs(z - z_eq) < 1e-9, (old, z, z_eq)
+    _, new, _ = runs[False]
+    assert all(rec.accepted for rec in new)
+    assert any(rec.weight < 20.0 and rec.alpha < 1.0 for rec in new)   # halved, taken
+    _, old, _ = runs[True]
+    growth = [rec for prev, rec in zip(old, old[1:]) if not rec.accepted
+              and rec.weight < 20.0 and rec.residual > 5 * prev.residual]
+    assert growth, [(r.weight, r.alpha, r.residual, r.accepted) for r in old]
+
+
 def test_merit_change_is_the_work_of_the_residual_on_a_valve():
     """The pseudo-time end game judges an update by the change of its merit: the change of the
     strain, bending, chordae and contact energies minus the pressure's work along the update
