@@ -179,10 +179,12 @@ class _DoubleWell:
                       stiffness if self.lazy else stiffness(), (z ** 2 - 1) ** 2 / 4)
 
 
-def _double_well(convexify: bool, early: bool = False, lazy: bool = False):
-    """Pseudo-time on one triangle held by a weak spring (``c u . v`` over it), node 0 in the
-    double well, started beside the hump's top (z = 0.05); ``early``: projected blocks before
-    Newton's regime too. Returns (info, solver, z, the well)."""
+def _one_node(term, prefix: str, z0: float = 0.0, c: float = 0.01, **options):
+    """Pseudo-time on one triangle held by a weak spring (``c u . v`` over it, potential
+    ``c u . u / 2``), node 0 also under the point term ``term(X)`` and started at z = ``z0``;
+    ``options`` go to :class:`PseudoTransient`. Returns (info, solver, z of node 0, the term).
+    Once the other nodes' z are condensed out of the P1 mass matrix, the spring on node 0 is
+    ``c (1/12 - 1/36) = c / 18``."""
     import ufl
     from dolfinx import fem, mesh
 
@@ -195,24 +197,30 @@ def _double_well(convexify: bool, early: bool = False, lazy: bool = False):
                            np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), domain)
     V = fem.VectorFunctionSpace(msh, ("Lagrange", 1))
     u, v = fem.Function(V), ufl.TestFunction(V)
-    c = fem.Constant(msh, 0.01)
+    cc = fem.Constant(msh, c)
     view = NodalView(V)
     assert np.allclose(view.X[0], 0.0)
-    well = _DoubleWell(view.X, lazy)
-    pb = SNESProblem(c * ufl.inner(u, v) * ufl.dx, u, [], prefix=f"well{int(convexify)}_",
-                     point_terms=PointTerms(view, [well]),
-                     potential=0.5 * c * ufl.inner(u, u) * ufl.dx)
+    point = term(view.X)
+    pb = SNESProblem(cc * ufl.inner(u, v) * ufl.dx, u, [], prefix=prefix,
+                     point_terms=PointTerms(view, [point]),
+                     potential=0.5 * cc * ufl.inner(u, u) * ufl.dx)
     try:
         w = u.vector.copy()
         w.set(1.0)
         pb.set_proximal(1.0, weights=w, centre=u.vector.copy())
-        u.x.array[2] = 0.05
-        ptc = PseudoTransient(pb, k0=0.5, atol=1e-10, max_steps=100, convexify=convexify,
-                              convexify_early=early)
+        u.x.array[2] = z0
+        ptc = PseudoTransient(pb, atol=1e-10, **options)
         info = ptc.run()
-        return info, ptc, float(u.x.array[2]), well
+        return info, ptc, float(u.x.array[2]), point
     finally:
         pb.destroy()
+
+
+def _double_well(convexify: bool, early: bool = False, lazy: bool = False):
+    """Node 0 in the double well, started beside the hump's top (z = 0.05); ``early``:
+    projected blocks before Newton's regime too. Returns (info, solver, z, the well)."""
+    return _one_node(lambda X: _DoubleWell(X, lazy), f"well{int(convexify)}_", z0=0.05,
+                     k0=0.5, max_steps=100, convexify=convexify, convexify_early=early)
 
 
 def test_pseudo_time_convexifies_where_newton_climbs():
@@ -294,44 +302,15 @@ def test_newtons_regime_judges_by_the_potential_alone():
     no refusal. With ``reject_descending`` (the rule before session 25) it is refused for the
     residual's growth and ``k`` grows fourfold. Both reach the equilibrium of the wall and the
     spring (``c / 18`` on node 0, as in the double well)."""
-    import ufl
-    from dolfinx import fem, mesh
-
-    from mvfem.nodal import NodalView, PointTerms
-    from mvfem.solver import PseudoTransient, SNESProblem
-
-    domain = ufl.Mesh(ufl.VectorElement("Lagrange", ufl.Cell("triangle", geometric_dimension=3),
-                                        1))
-    msh = mesh.create_mesh(MPI.COMM_SELF, np.array([[0, 1, 2]], dtype=np.int64),
-                           np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), domain)
-    V = fem.VectorFunctionSpace(msh, ("Lagrange", 1))
-    c = 0.01
-    runs = {}
-    for old in (False, True):
-        u, v = fem.Function(V), ufl.TestFunction(V)
-        view = NodalView(V)
-        wall = _Wall(view.X)
-        cc = fem.Constant(msh, c)
-        pb = SNESProblem(cc * ufl.inner(u, v) * ufl.dx, u, [], prefix=f"wall{int(old)}_",
-                         point_terms=PointTerms(view, [wall]),
-                         potential=0.5 * cc * ufl.inner(u, u) * ufl.dx)
-        try:
-            w = u.vector.copy()
-            w.set(1.0)
-            pb.set_proximal(1.0, weights=w, centre=u.vector.copy())
-            ptc = PseudoTransient(pb, k0=20.0, atol=1e-10, max_steps=200,
-                                  reject_descending=old)
-            info = ptc.run()
-            runs[old] = (info, ptc.history, float(u.x.array[2]))
-        finally:
-            pb.destroy()
-    z_eq = wall.equilibrium(c / 18)
-    for old, (info, history, z) in runs.items():
+    runs = {old: _one_node(_Wall, f"wall{int(old)}_", k0=20.0, max_steps=200,
+                           reject_descending=old) for old in (False, True)}
+    for old, (info, _, z, wall) in runs.items():
+        z_eq = wall.equilibrium(0.01 / 18)
         assert info.converged and abs(z - z_eq) < 1e-9, (old, z, z_eq)
-    _, new, _ = runs[False]
+    new = runs[False][1].history
     assert all(rec.accepted for rec in new)
     assert any(rec.weight < 20.0 and rec.alpha < 1.0 for rec in new)   # halved, taken
-    _, old, _ = runs[True]
+    old = runs[True][1].history
     growth = [rec for prev, rec in zip(old, old[1:]) if not rec.accepted
               and rec.weight < 20.0 and rec.residual > 5 * prev.residual]
     assert growth, [(r.weight, r.alpha, r.residual, r.accepted) for r in old]
