@@ -179,10 +179,11 @@ class _DoubleWell:
                       stiffness if self.lazy else stiffness(), (z ** 2 - 1) ** 2 / 4)
 
 
-def _one_node(term, prefix: str, z0: float = 0.0, c: float = 0.01, **options):
+def _one_node(term, prefix: str, z0: float = 0.0, c: float = 0.01, potential: bool = True,
+              **options):
     """Pseudo-time on one triangle held by a weak spring (``c u . v`` over it, potential
-    ``c u . u / 2``), node 0 also under the point term ``term(X)`` and started at z = ``z0``;
-    ``options`` go to :class:`PseudoTransient`. Returns (info, solver, z of node 0, the term).
+    ``c u . u / 2`` unless not ``potential``), node 0 also under the point term ``term(X)``
+    and started at z = ``z0``; ``options`` go to :class:`PseudoTransient`. Returns (info, solver, z of node 0, the term).
     Once the other nodes' z are condensed out of the P1 mass matrix, the spring on node 0 is
     ``c (1/12 - 1/36) = c / 18``."""
     import ufl
@@ -203,7 +204,7 @@ def _one_node(term, prefix: str, z0: float = 0.0, c: float = 0.01, **options):
     point = term(view.X)
     pb = SNESProblem(cc * ufl.inner(u, v) * ufl.dx, u, [], prefix=prefix,
                      point_terms=PointTerms(view, [point]),
-                     potential=0.5 * cc * ufl.inner(u, u) * ufl.dx)
+                     potential=0.5 * cc * ufl.inner(u, u) * ufl.dx if potential else None)
     try:
         w = u.vector.copy()
         w.set(1.0)
@@ -300,20 +301,42 @@ def test_newtons_regime_judges_by_the_potential_alone():
     """In Newton's regime (``k`` below ``k0 = 20``) the update towards the wall grows the
     residual 70-fold. By default the potential judges it: halved until it descends, taken,
     no refusal. With ``reject_descending`` (the rule before session 25) it is refused for the
-    residual's growth and ``k`` grows fourfold. Both reach the equilibrium of the wall and the
-    spring (``c / 18`` on node 0, as in the double well)."""
+    residual's growth and ``k`` grows fourfold, as it is by default where the problem has no
+    potential (the residual is the merit there) and before Newton's regime. All reach the
+    equilibrium of the wall and the spring (``c / 18`` on node 0, as in the double well).
+    Checked to fail with the potential judging always, or also before Newton's regime, or
+    also without a potential."""
     runs = {old: _one_node(_Wall, f"wall{int(old)}_", k0=20.0, max_steps=200,
                            reject_descending=old) for old in (False, True)}
+    runs["no potential"] = _one_node(_Wall, "wall_np_", k0=20.0, max_steps=200,
+                                     potential=False)
     for old, (info, _, z, wall) in runs.items():
         z_eq = wall.equilibrium(0.01 / 18)
         assert info.converged and abs(z - z_eq) < 1e-9, (old, z, z_eq)
     new = runs[False][1].history
     assert all(rec.accepted for rec in new)
     assert any(rec.weight < 20.0 and rec.alpha < 1.0 for rec in new)   # halved, taken
-    old = runs[True][1].history
-    growth = [rec for prev, rec in zip(old, old[1:]) if not rec.accepted
-              and rec.weight < 20.0 and rec.residual > 5 * prev.residual]
-    assert growth, [(r.weight, r.alpha, r.residual, r.accepted) for r in old]
+    for key in (True, "no potential"):
+        grown = [rec for rec in _grown_fivefold(runs[key][1].history) if rec.weight < 20.0]
+        assert grown and not any(rec.accepted for rec in grown), key
+    # before Newton's regime (k >= k0 = 0.5) the fivefold rule stays: from 2 mm off the wall
+    # an update grows the residual 5.4-fold, and is refused
+    info, ptc, z, wall = _one_node(lambda X: _Wall(X, g=2.0), "wall_pre_", k0=0.5,
+                                   max_steps=200)
+    assert info.converged and abs(z - wall.equilibrium(0.01 / 18)) < 1e-9
+    grown = [rec for rec in _grown_fivefold(ptc.history) if rec.weight >= 0.5]
+    assert grown and not any(rec.accepted for rec in grown)
+
+
+def _grown_fivefold(history):
+    """The records whose residual is more than 5x that of the state they started from."""
+    out, r = [], None
+    for rec in history:
+        if r is not None and rec.residual > 5 * r:
+            out.append(rec)
+        if rec.accepted:
+            r = rec.residual
+    return out
 
 
 def test_merit_change_is_the_work_of_the_residual_on_a_valve():
