@@ -580,7 +580,7 @@ class PseudoTransient:
     #: tenfold; refused, ``k`` grew fourfold at each (seven in a row, 27 to 1.1e5, on the
     #: demo refined once, its update finally taken growing the residual anyway). Judged by
     #: the potential alone (backtracking where it rises), the demo refined once took 46-88
-    #: fine steps instead of 72-199 at 15.5-17 kPa (README, "Solving")
+    #: fine steps instead of 72-199 at 15.5-17 kPa (README, "Nested levels")
     reject_descending: bool = False
     #: in Newton's regime (``k < k0``), an update that does not descend (``F . du > 0``:
     #: the tangent is indefinite there) is solved again, once, with the point terms' blocks

@@ -183,9 +183,9 @@ def _one_node(term, prefix: str, z0: float = 0.0, c: float = 0.01, potential: bo
               **options):
     """Pseudo-time on one triangle held by a weak spring (``c u . v`` over it, potential
     ``c u . u / 2`` unless not ``potential``), node 0 also under the point term ``term(X)``
-    and started at z = ``z0``; ``options`` go to :class:`PseudoTransient`. Returns (info, solver, z of node 0, the term).
-    Once the other nodes' z are condensed out of the P1 mass matrix, the spring on node 0 is
-    ``c (1/12 - 1/36) = c / 18``."""
+    and started at z = ``z0``; ``options`` go to :class:`PseudoTransient`. Returns (info,
+    solver, z of node 0, the term). Once the other nodes' z are condensed out of the P1 mass
+    matrix, the spring on node 0 is ``c (1/12 - 1/36) = c / 18``."""
     import ufl
     from dolfinx import fem, mesh
 
