@@ -263,31 +263,30 @@ def test_pseudo_time_projects_before_newtons_regime():
 class _Wall:
     """A point term on node 0's z displacement: a constant force ``f`` towards a wall ``g``
     below, and the contact barrier ``kappa b(d)``, ``b = -(d - delta)^2 log(d / delta)`` for
-    ``d = z + g < delta`` (IPC's, as in :func:`mvfem.contact.barrier`): its force grows fast
+    ``d = z + g < delta`` (IPC's, :func:`mvfem.contact.barrier` itself): its force grows fast
     as ``d`` falls, so an update can descend the potential and grow the residual tenfold."""
 
     def __init__(self, X, f=1.0, kappa=1000.0, g=1.5, delta=1.0):
         self.X, self.f, self.kappa, self.g, self.delta = X, f, kappa, g, delta
 
     def __call__(self, x):
+        from mvfem.contact import barrier
         from mvfem.nodal import Blocks
 
         z = x[0, 2] - self.X[0, 2]
-        E, dE, ddE = self.f * z, self.f, 0.0
-        d, dl = z + self.g, self.delta
-        if d <= 0:
+        d = z + self.g
+        if d <= 0:  # through the wall: nothing finite (the barrier gives no force there)
             E = dE = ddE = np.inf
-        elif d < dl:
-            log_ = np.log(d / dl)
-            E += -self.kappa * (d - dl) ** 2 * log_
-            dE += self.kappa * (-2 * (d - dl) * log_ - (d - dl) ** 2 / d)
-            ddE += self.kappa * (-2 * log_ - 4 * (d - dl) / d + (d - dl) ** 2 / d ** 2)
+        else:
+            b, db, ddb = (float(v) for v in barrier(d, self.delta, self.kappa))
+            E, dE, ddE = self.f * z + b, self.f + db, ddb
         f, K = np.zeros((1, 1, 3)), np.zeros((1, 3, 3))
         f[0, 0, 2], K[0, 2, 2] = dE, ddE
         return Blocks(np.zeros((1, 1), dtype=np.int64), f, K, E)
 
     def equilibrium(self, spring):
-        """z where ``f + kappa b'(z + g) + spring z = 0`` (bisection in the barrier's reach)."""
+        """z where ``f + kappa b'(z + g) + spring z = 0`` (bisection in the barrier's reach;
+        ``b'`` written out here, not :func:`mvfem.contact.barrier`'s)."""
         from scipy.optimize import brentq
 
         def force(z):
