@@ -35,7 +35,7 @@ __all__ = ["load", "point_triangle_gradient", "point_triangle_hessian",
            "point_triangle_stiffness", "edge_edge_energy",
            "edge_edge_hessian", "point_triangle_distance", "segment_distance", "elements_csr",
            "csr_missing", "threads", "one_blas_thread", "hinge_cos_sin", "hinge_energy",
-           "hinge_hessian", "hinge_hessian_add"]
+           "hinge_hessian", "hinge_hessian_add", "psd_project"]
 
 log = logging.getLogger(__name__)
 
@@ -64,11 +64,13 @@ long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, d
                   int64_t *work);
 long csr_missing(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib,
                  const int64_t *jb);
+void psd_proj(long m, int p, double *K, int *fail);
 int set_threads(int n);
 int team_size(void);
 """
 
 _SOURCE = r"""
+#include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -726,6 +728,208 @@ long csr_missing(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib
   }
   return missing;
 }
+
+/* sqrt(a^2 + b^2): libm's hypot, careful about overflow, took a third of a projection's
+   time; the plain formula where the squares cannot overflow */
+static inline double pyth(double a, double b) {
+  double fa = fabs(a), fb = fabs(b);
+  return (fa < 1e150 && fb < 1e150) ? sqrt(a * a + b * b) : hypot(a, b);
+}
+
+/* Symmetric eigenproblems of small blocks (the PSD projection below), after EISPACK's tred2
+   and tql2. Householder reduction of the symmetric a (n x n, row-major) to tridiagonal form:
+   diagonal d, subdiagonal e (e[0] = 0); a is replaced by the orthogonal transformation */
+static void tridiagonal(int n, double *a, double *d, double *e) {
+  for (int i = n - 1; i > 0; i--) {
+    int l = i - 1;
+    double h = 0.0, scale = 0.0;
+    if (l > 0) {
+      for (int k = 0; k <= l; k++) scale += fabs(a[i * n + k]);
+      if (scale == 0.0) {
+        e[i] = a[i * n + l];
+      } else {
+        for (int k = 0; k <= l; k++) {
+          a[i * n + k] /= scale;
+          h += a[i * n + k] * a[i * n + k];
+        }
+        double f = a[i * n + l];
+        double g = f >= 0.0 ? -sqrt(h) : sqrt(h);
+        e[i] = scale * g;
+        h -= f * g;
+        a[i * n + l] = f - g;
+        f = 0.0;
+        for (int j = 0; j <= l; j++) {
+          a[j * n + i] = a[i * n + j] / h;
+          g = 0.0;
+          for (int k = 0; k <= j; k++) g += a[j * n + k] * a[i * n + k];
+          for (int k = j + 1; k <= l; k++) g += a[k * n + j] * a[i * n + k];
+          e[j] = g / h;
+          f += e[j] * a[i * n + j];
+        }
+        double hh = f / (h + h);
+        for (int j = 0; j <= l; j++) {
+          f = a[i * n + j];
+          e[j] = g = e[j] - hh * f;
+          for (int k = 0; k <= j; k++) a[j * n + k] -= f * e[k] + g * a[i * n + k];
+        }
+      }
+    } else {
+      e[i] = a[i * n + l];
+    }
+    d[i] = h;
+  }
+  d[0] = 0.0;
+  e[0] = 0.0;
+  for (int i = 0; i < n; i++) {
+    int l = i - 1;
+    if (d[i] != 0.0) {
+      for (int j = 0; j <= l; j++) {
+        double g = 0.0;
+        for (int k = 0; k <= l; k++) g += a[i * n + k] * a[k * n + j];
+        for (int k = 0; k <= l; k++) a[k * n + j] -= g * a[k * n + i];
+      }
+    }
+    d[i] = a[i * n + i];
+    a[i * n + i] = 1.0;
+    for (int j = 0; j <= l; j++) a[j * n + i] = a[i * n + j] = 0.0;
+  }
+}
+
+/* eigenvalues d and eigenvectors (the columns of z, on entry the transformation of
+   tridiagonal()) of the tridiagonal matrix (d, e) by QL with implicit shifts; 0, or -1
+   where 60 iterations did not split off an eigenvalue */
+static int tridiagonal_ql(int n, double *d, double *e, double *z) {
+  for (int i = 1; i < n; i++) e[i - 1] = e[i];
+  e[n - 1] = 0.0;
+  for (int l = 0; l < n; l++) {
+    int iter = 0, m;
+    do {
+      for (m = l; m < n - 1; m++) {
+        double dd = fabs(d[m]) + fabs(d[m + 1]);
+        if (fabs(e[m]) <= DBL_EPSILON * dd) break;
+      }
+      if (m != l) {
+        if (iter++ == 60) return -1;
+        double g = (d[l + 1] - d[l]) / (2.0 * e[l]);
+        double r = pyth(g, 1.0);
+        g = d[m] - d[l] + e[l] / (g + (g >= 0.0 ? fabs(r) : -fabs(r)));
+        double s = 1.0, c = 1.0, p = 0.0;
+        int i;
+        for (i = m - 1; i >= l; i--) {
+          double f = s * e[i], b = c * e[i];
+          e[i + 1] = r = pyth(f, g);
+          if (r == 0.0) {
+            d[i + 1] -= p;
+            e[m] = 0.0;
+            break;
+          }
+          s = f / r;
+          c = g / r;
+          g = d[i + 1] - p;
+          r = (d[i] - g) * s + 2.0 * c * b;
+          d[i + 1] = g + (p = s * r);
+          g = c * r - b;
+          for (int k = 0; k < n; k++) {
+            f = z[k * n + i + 1];
+            z[k * n + i + 1] = s * z[k * n + i] + c * f;
+            z[k * n + i] = c * z[k * n + i] - s * f;
+          }
+        }
+        if (r == 0.0 && i >= l) continue;
+        d[l] -= p;
+        e[l] = g;
+        e[m] = 0.0;
+      }
+    } while (m != l);
+  }
+  return 0;
+}
+
+/* the positive semidefinite part of each symmetric block of K (m blocks of p points, n = 3p
+   <= 12 rows), in place: K - sum over its negative eigenpairs of w v v^T. Blocks of an
+   energy that a translation of all p points leaves unchanged (their 3 x 3 block rows sum to
+   zero, to 1e-12 of the largest entry) are projected through the 3(p - 1) relative
+   coordinates x_a - x_0: with T the map to those, K = T^T K_r T, K_r the trailing block of
+   K. T T^T = C (x) I_3, C = I + 1 1^T = L L^T (Cholesky), so Q = T^T L^-T is an orthonormal
+   basis of the non-translations, K = Q (L^T K_r L) Q^T, and the projection of K is that of
+   the smaller L^T K_r L carried back by Q: 5 instead of 19 us a 12 x 12 block (LAPACK's
+   dsyevd through numpy's eigh). Others are projected whole. fail[b] = 1 where QL did not
+   converge (the block left unchanged) */
+void psd_proj(long m, int p, double *K, int *fail) {
+  int n = 3 * p, q = p - 1, r = 3 * q;
+  double Lc[16];  /* Cholesky factor of I + 1 1^T ((p - 1) x (p - 1)) */
+  for (int i = 0; i < q; i++)
+    for (int j = 0; j <= i; j++) {
+      double s = (i == j ? 2.0 : 1.0);
+      for (int k = 0; k < j; k++) s -= Lc[i * 4 + k] * Lc[j * 4 + k];
+      Lc[i * 4 + j] = i == j ? sqrt(s) : s / Lc[j * 4 + j];
+    }
+  PAR
+  for (long b = 0; b < m; b++) {
+    double *Kb = K + b * n * n;
+    double z[144], d[12], e[12], U[144];
+    double top = 0.0, sum = 0.0;
+    for (int i = 0; i < n * n; i++) top = fmax(top, fabs(Kb[i]));
+    for (int i = 0; i < 3 && q > 0; i++)
+      for (int c = 0; c < n; c++) {
+        double s = 0.0;
+        for (int a = 0; a < p; a++) s += Kb[(3 * a + i) * n + c];
+        sum = fmax(sum, fabs(s));
+      }
+    int reduced = q > 0 && sum <= 1e-12 * top, k_n = reduced ? r : n;
+    if (reduced) {
+      /* z = L^T K_r L, L = Lc (x) I_3: (L^T K_r L)[(a,i),(c,j)] = sum_{a'>=a, c'>=c}
+         Lc[a'][a] K_r[(a',i),(c',j)] Lc[c'][c] */
+      double t[144];
+      for (int a = 0; a < q; a++) for (int i = 0; i < 3; i++)
+        for (int cc = 0; cc < r; cc++) {
+          double s = 0.0;
+          for (int a2 = a; a2 < q; a2++) s += Lc[a2 * 4 + a] * Kb[(3 + 3 * a2 + i) * n + 3 + cc];
+          t[(3 * a + i) * r + cc] = s;
+        }
+      for (int row = 0; row < r; row++)
+        for (int c = 0; c < q; c++) for (int j = 0; j < 3; j++) {
+          double s = 0.0;
+          for (int c2 = c; c2 < q; c2++) s += t[row * r + 3 * c2 + j] * Lc[c2 * 4 + c];
+          z[row * r + 3 * c + j] = s;
+        }
+    } else {
+      memcpy(z, Kb, sizeof(double) * n * n);
+    }
+    tridiagonal(k_n, z, d, e);
+    fail[b] = tridiagonal_ql(k_n, d, e, z) != 0;
+    if (fail[b]) continue;
+    int neg = 0;
+    for (int k = 0; k < k_n; k++) neg += d[k] < 0.0;
+    if (!neg) continue;
+    if (reduced) {
+      /* U = T^T L^-T V, column k the eigenvector k in the n coordinates: W = L^-T V by back
+         substitution (L^T upper triangular), then U rows of point 0 = -(sum of W's points) */
+      for (int k = 0; k < r; k++) {
+        if (d[k] >= 0.0) continue;
+        for (int j = 0; j < 3; j++) {
+          double s0 = 0.0;
+          for (int a = q - 1; a >= 0; a--) {
+            double s = z[(3 * a + j) * r + k];
+            for (int a2 = a + 1; a2 < q; a2++) s -= Lc[a2 * 4 + a] * U[(3 + 3 * a2 + j) * 12 + k];
+            U[(3 + 3 * a + j) * 12 + k] = s / Lc[a * 4 + a];
+            s0 += U[(3 + 3 * a + j) * 12 + k];
+          }
+          U[j * 12 + k] = -s0;
+        }
+      }
+    } else {
+      for (int i = 0; i < n; i++) for (int k = 0; k < n; k++) U[i * 12 + k] = z[i * n + k];
+    }
+    for (int k = 0; k < k_n; k++) {
+      if (d[k] >= 0.0) continue;
+      for (int row = 0; row < n; row++) {
+        double f = d[k] * U[row * 12 + k];
+        for (int c = 0; c < n; c++) Kb[row * n + c] -= f * U[c * 12 + k];
+      }
+    }
+  }
+}
 """
 
 _lib = None
@@ -1000,6 +1204,22 @@ def hinge_hessian_add(y: np.ndarray, c0: np.ndarray, s0: np.ndarray, k: np.ndarr
     lib.hinge_hess_add(len(y), _ptr(ffi, y), _ptr(ffi, c0), _ptr(ffi, s0), _ptr(ffi, k), rel,
                        _index(ffi, place), _ptr(ffi, vals))
     return vals
+
+
+def psd_project(K: np.ndarray) -> np.ndarray:
+    """Each symmetric block of ``K`` ((m, n, n), n = 3, 6, 9 or 12: the blocks of 1-4 points,
+    C-contiguous float64) replaced in place by its positive semidefinite part (the negative
+    eigenvalues set to zero). Returns the (m,) mask of blocks whose eigenvalues did not
+    converge, left unchanged (the caller projects those otherwise)."""
+    ffi, lib = load()
+    m, n = K.shape[0], K.shape[1]
+    if K.ndim != 3 or K.shape[2] != n or n % 3 or not 3 <= n <= 12:
+        raise ValueError(f"blocks of 3 to 12 rows, a multiple of 3, not {K.shape[1:]}")
+    if K.dtype != np.float64 or not K.flags.c_contiguous:
+        raise ValueError("K must be a C-contiguous float64 array")
+    fail = np.zeros(m, dtype=np.intc)
+    lib.psd_proj(m, n // 3, _ptr(ffi, K), ffi.cast("int *", ffi.from_buffer(fail)))
+    return fail.astype(bool)
 
 
 def elements_csr(N: int, free: np.ndarray, groups) -> tuple[np.ndarray, ...]:

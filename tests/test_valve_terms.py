@@ -455,21 +455,43 @@ def test_contact_stiffness_is_the_derivative_of_its_forces():
 
 
 
-def test_project_psd_drops_the_negative_spectrum_only():
-    """Blocks built from their eigen-decompositions: the projection is ``R diag(max(l, 0))
-    R^T``; blocks with no negative eigenvalue come back unchanged."""
-    from mvfem.contact import project_psd
-
-    rng = np.random.default_rng(2)
-    m, n = 6, 12
-    R = np.linalg.qr(rng.standard_normal((m, n, n)))[0]
-    lam = rng.uniform(0.1, 10.0, (m, n)) * np.where(rng.random((m, n)) < 0.4, -1.0, 1.0)
+def _spectral_blocks(rng, m: int, n: int, invariant: bool):
+    """(K, its PSD part): blocks ``R diag(l) R^T`` built from their eigen-decompositions,
+    about 40 % of the eigenvalues negative, the first block's none; ``invariant``: ``R``'s
+    columns orthogonal to the translations of the n / 3 points (an energy of relative
+    positions, like a contact pair's), else any orthonormal ``R``."""
+    if invariant:
+        shift = np.tile(np.eye(3), (n // 3, 1)) / np.sqrt(n // 3)  # the translations (n, 3)
+        full = np.linalg.qr(np.concatenate([np.broadcast_to(shift, (m, n, 3)),
+                                            rng.standard_normal((m, n, n - 3))], axis=2))[0]
+        R = full[:, :, 3:]
+    else:
+        R = np.linalg.qr(rng.standard_normal((m, n, n)))[0]
+    k = R.shape[2]
+    lam = rng.uniform(0.1, 10.0, (m, k)) * np.where(rng.random((m, k)) < 0.4, -1.0, 1.0)
     lam[0] = np.abs(lam[0])  # one block already PSD
     K = np.einsum("mij,mj,mkj->mik", R, lam, R)
-    want = np.einsum("mij,mj,mkj->mik", R, np.maximum(lam, 0.0), R)
-    got = project_psd(K.copy())
-    assert np.abs(got - want).max() < 1e-12 * np.abs(K).max()
-    assert np.array_equal(got[0], K[0])
+    return K, np.einsum("mij,mj,mkj->mik", R, np.maximum(lam, 0.0), R)
+
+
+@pytest.mark.parametrize("n,invariant", [(3, False), (6, False), (9, False), (12, False),
+                                         (6, True), (9, True), (12, True)])
+def test_project_psd_drops_the_negative_spectrum_only(n, invariant):
+    """The projection is ``R diag(max(l, 0)) R^T`` for blocks built from their
+    eigen-decompositions: compiled (a translation-invariant block through its relative
+    coordinates, any other whole) and by numpy's ``eigh`` (the fallback); a block with
+    every eigenvalue positive comes back unchanged."""
+    from mvfem import contact, kernels
+
+    rng = np.random.default_rng(2 + n)
+    K, want = _spectral_blocks(rng, 600, n, invariant)
+    if kernels.load() is None:
+        pytest.fail("the contact kernels did not compile (a C compiler is part of make setup)")
+    for got in (contact.project_psd(K.copy()), contact._project_psd(K.copy())):
+        assert np.abs(got - want).max() < 1e-12 * np.abs(K).max()
+        if not invariant:  # (there the translations' zero eigenvalues are +-roundoff)
+            assert np.array_equal(got[0], K[0])
+    assert not kernels.psd_project(K.copy()).any()  # every block's eigenvalues converged
 
 
 def test_contact_convex_blocks_keep_forces_and_are_psd():
@@ -898,6 +920,7 @@ def test_kernel_threads_give_the_results_of_one():
     c0, s0, kh = np.cos(rng.normal(size=m)), np.sin(rng.normal(size=m)), rng.uniform(1, 2, m)
     blocks = rng.normal(size=(m, 12, 12))
     blocks = blocks + np.swapaxes(blocks, 1, 2)
+    invariant = _spectral_blocks(rng, m, 12, True)[0]  # the projection's reduced path
 
     def run():
         d, g = kernels.point_triangle_gradient(y)
@@ -909,7 +932,8 @@ def test_kernel_threads_give_the_results_of_one():
                kernels.segment_distance(x, edges, s, t),
                kernels.hinge_hessian_add(y, c0, s0, kh, place, 5000),
                *kernels.elements_csr(N, free, [(nodes, blocks)]),
-               contact.project_psd(blocks.copy())]
+               contact.project_psd(blocks.copy()),
+               contact.project_psd(invariant.copy())]
         return out
 
     assert kernels.threads(1) == 1
@@ -932,9 +956,10 @@ def test_kernel_threads_give_the_results_of_one():
     H *= dphi[:, None, None]
     H += ddphi[:, None, None] * g[:, :, None] * g[:, None, :]
     assert np.array_equal(H, one[3])
-    with kernels.one_blas_thread():
-        assert np.array_equal(contact._project_psd(blocks.copy()), two[-1])
-    assert one[-2].size > 4096 * 9      # the rows were built on the parallel path
+    with kernels.one_blas_thread():  # the compiled projection against LAPACK's
+        for K, got in ((blocks, two[-2]), (invariant, two[-1])):
+            assert np.abs(contact._project_psd(K.copy()) - got).max() < 1e-12 * np.abs(K).max()
+    assert one[-3].size > 4096 * 9      # the rows were built on the parallel path
 
 
 def test_one_blas_thread_inside_and_restored_after():
