@@ -1030,4 +1030,6 @@ class Contact:
         nodes = np.concatenate([np.concatenate([s[:, None], tri], axis=1),
                                 np.concatenate([self._edges[ei], self._edges[ej]], axis=1)])
         forces = np.concatenate([force, g_ee.reshape(me, 4, 3)])
-        return Blocks(nodes.astype(np.int64), forces, stiffness, float(phi.sum() + E_ee.sum()))
+        blocks = Blocks(nodes.astype(np.int64), forces, stiffness, float(phi.sum() + E_ee.sum()))
+        blocks.project = project_psd  # (what `convex` does to the exact blocks)
+        return blocks

@@ -455,6 +455,46 @@ def test_contact_stiffness_is_the_derivative_of_its_forces():
 
 
 
+def test_convexify_projects_the_computed_blocks_in_place():
+    """``PointTerms.convexify(True)`` after an exact tangent (the solver's re-solve where
+    Newton's update climbs): contact's blocks are projected where they are
+    (``Blocks.project``), bit for bit the blocks of a fresh evaluation with ``convex`` set,
+    and the term is not evaluated again; back to exact, the next evaluation gives the
+    exact blocks again."""
+    from mvfem.contact import Contact
+    from mvfem.nodal import PointTerms
+
+    view, x = _two_sheets(0.25, shift=0.37)
+    x = x + np.random.default_rng(5).normal(scale=0.04, size=x.shape)
+    view.gather = lambda owned: np.asarray(owned).reshape(-1, 3)
+
+    class Counted:  # the contact term, its evaluations counted
+        def __init__(self, c):
+            self.c, self.calls = c, 0
+
+        convex = property(lambda self: self.c.convex,
+                          lambda self, on: setattr(self.c, "convex", on))
+
+        def __call__(self, y):
+            self.calls += 1
+            return self.c(y)
+
+    term = Counted(Contact(view, 0.5, 1e5, exclusion=0.2))
+    terms = PointTerms(view, [term])
+    u = (x - view.X).ravel()
+    exact = terms.evaluate(u)[0].stiffness.copy()
+    assert terms.convexify(True)
+    convex = terms.evaluate(u)[0].stiffness
+    fresh = Contact(view, 0.5, 1e5, exclusion=0.2)
+    fresh.convex = True
+    assert term.calls == 1
+    assert np.array_equal(convex, fresh(x).stiffness)
+    assert not np.array_equal(convex, exact)
+    terms.convexify(False)
+    assert np.array_equal(terms.evaluate(u)[0].stiffness, exact)
+    assert term.calls == 2
+
+
 def _spectral_blocks(rng, m: int, n: int, invariant: bool):
     """(K, its PSD part): blocks ``R diag(l) R^T`` built from their eigen-decompositions,
     about 40 % of the eigenvalues negative, the first block's none; ``invariant``: ``R``'s
