@@ -852,8 +852,9 @@ static int tridiagonal_ql(int n, double *d, double *e, double *z) {
    coordinates x_a - x_0: with T the map to those, K = T^T K_r T, K_r the trailing block of
    K. T T^T = C (x) I_3, C = I + 1 1^T = L L^T (Cholesky), so Q = T^T L^-T is an orthonormal
    basis of the non-translations, K = Q (L^T K_r L) Q^T, and the projection of K is that of
-   the smaller L^T K_r L carried back by Q: 5 instead of 19 us a 12 x 12 block (LAPACK's
-   dsyevd through numpy's eigh). Others are projected whole. fail[b] = 1 where QL did not
+   the smaller L^T K_r L carried back by Q: 2.5 instead of 12 us a 12 x 12 contact block on
+   one thread (LAPACK through numpy's eigh; scripts/psd_projection.py). Others are projected
+   whole. fail[b] = 1 where QL did not
    converge (the block left unchanged) */
 void psd_proj(long m, int p, double *K, int *fail) {
   int n = 3 * p, q = p - 1, r = 3 * q;
@@ -1212,9 +1213,9 @@ def psd_project(K: np.ndarray) -> np.ndarray:
     eigenvalues set to zero). Returns the (m,) mask of blocks whose eigenvalues did not
     converge, left unchanged (the caller projects those otherwise)."""
     ffi, lib = load()
-    m, n = K.shape[0], K.shape[1]
-    if K.ndim != 3 or K.shape[2] != n or n % 3 or not 3 <= n <= 12:
+    if K.ndim != 3 or K.shape[1] != K.shape[2] or K.shape[1] % 3 or not 3 <= K.shape[1] <= 12:
         raise ValueError(f"blocks of 3 to 12 rows, a multiple of 3, not {K.shape[1:]}")
+    m, n = K.shape[0], K.shape[1]
     if K.dtype != np.float64 or not K.flags.c_contiguous:
         raise ValueError("K must be a C-contiguous float64 array")
     fail = np.zeros(m, dtype=np.intc)

@@ -532,6 +532,10 @@ def test_project_psd_drops_the_negative_spectrum_only(n, invariant):
         if not invariant:  # (there the translations' zero eigenvalues are +-roundoff)
             assert np.array_equal(got[0], K[0])
     assert not kernels.psd_project(K.copy()).any()  # every block's eigenvalues converged
+    for bad in (K[0], K[:, :, :-1].copy(), K[:, ::2, ::2], np.zeros((2, 15, 15)),
+                K.astype(np.float32)):  # (the kernel would read past these)
+        with pytest.raises(ValueError):
+            kernels.psd_project(bad)
 
 
 def test_contact_convex_blocks_keep_forces_and_are_psd():
