@@ -31,9 +31,10 @@ def sheet(n: int, side: float, z: float) -> tuple[np.ndarray, np.ndarray]:
     return P, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
 
 
-def pressures(h: float, gaps, side: float = 6.0, thickness: float = 0.5,
-              stiffness: float = 32e3) -> list[tuple[float, int, int]]:
-    """(pressure Pa, node-triangle pairs, edge pairs) at each gap, for grid spacing h."""
+def sheets_contact(h: float, side: float = 6.0, thickness: float = 0.5,
+                   stiffness: float = 32e3):
+    """(view, contact term) of two parallel grids of spacing h, at z = 0 and z = 3 (the
+    upper one, z > 1.5, to be moved to the gap)."""
     from dolfinx import fem
 
     from mvfem.contact import Contact
@@ -46,7 +47,13 @@ def pressures(h: float, gaps, side: float = 6.0, thickness: float = 0.5,
     msh, _, _ = mesh_from_arrays(MPI.COMM_SELF, np.vstack([P1, P2]),
                                  np.vstack([T1, T2 + len(P1)]))
     view = NodalView(fem.VectorFunctionSpace(msh, ("Lagrange", 1)))
-    contact = Contact(view, thickness, stiffness)
+    return view, Contact(view, thickness, stiffness)
+
+
+def pressures(h: float, gaps, side: float = 6.0, thickness: float = 0.5,
+              stiffness: float = 32e3) -> list[tuple[float, int, int]]:
+    """(pressure Pa, node-triangle pairs, edge pairs) at each gap, for grid spacing h."""
+    view, contact = sheets_contact(h, side, thickness, stiffness)
     top = view.X[:, 2] > 1.5
     inner = (np.abs(view.X[:, 0]) < 1.0) & (np.abs(view.X[:, 1]) < 1.0) & ~top
     out = []

@@ -22,26 +22,14 @@ import sys
 import time
 
 import numpy as np
-from mpi4py import MPI
 
 
 def scene(h: float, gap: float, side: float = 6.0, thickness: float = 0.5,
           stiffness: float = 32e3):
     """The contact term between the two sheets and the perturbed positions."""
-    from dolfinx import fem
+    from contact_sheets import sheets_contact
 
-    from contact_sheets import sheet
-    from mvfem.contact import Contact
-    from mvfem.meshes.io import mesh_from_arrays
-    from mvfem.nodal import NodalView
-
-    n = int(round(side / h))
-    P1, T1 = sheet(n, side, 0.0)
-    P2, T2 = sheet(n, side, 3.0)
-    msh, _, _ = mesh_from_arrays(MPI.COMM_SELF, np.vstack([P1, P2]),
-                                 np.vstack([T1, T2 + len(P1)]))
-    view = NodalView(fem.VectorFunctionSpace(msh, ("Lagrange", 1)))
-    contact = Contact(view, thickness, stiffness)
+    view, contact = sheets_contact(h, side, thickness, stiffness)
     x = view.X.copy()
     x[view.X[:, 2] > 1.5, 2] = gap
     x += np.random.default_rng(0).uniform(-0.05 * h, 0.05 * h, x.shape)
