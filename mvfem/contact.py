@@ -481,8 +481,9 @@ def project_psd(K: np.ndarray) -> np.ndarray:
     block's in the 9 coordinates relative to its first node, since a translation leaves the
     distance unchanged; on the kernels' threads), 4-5x faster than numpy's batched ``eigh``
     (LAPACK; 0.15-0.17 s against 0.71-0.75 s for 117,000 blocks on 2 threads,
-    ``scripts/psd_projection.py``), which is the fallback: long stacks split over the kernels' threads (``eigh``
-    releases the GIL), with OpenBLAS on one thread (:func:`mvfem.kernels.one_blas_thread`).
+    ``scripts/psd_projection.py``), which is the fallback: long stacks split over the
+    kernels' threads (``eigh`` releases the GIL), with OpenBLAS on one thread
+    (:func:`mvfem.kernels.one_blas_thread`).
     The same blocks either way, to roundoff."""
     from mvfem import kernels
 

@@ -198,7 +198,7 @@ class PointTerms:
         it is. Exact blocks already computed are projected in place where the term gives
         the way (``Blocks.project``; the same blocks as a new evaluation's, without the
         distances, the lists' filter and the Hessians again: at 117,000 contact blocks
-        0.06-0.07 s, against a fine step's 1.4 s on the demo refined twice;
+        0.06-0.07 s, against a fine step's 1.4-2.3 s on the demo refined twice;
         ``scripts/psd_projection.py``); else, and on the way back to exact ones, the
         blocks are computed afresh at the next evaluation. Returns whether any term can."""
         able = [t for t in self.terms if hasattr(t, "convex")]

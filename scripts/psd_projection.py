@@ -68,7 +68,8 @@ def main(argv=None) -> int:
     diff = float((np.abs(out["compiled"] - out["numpy"]) / scale).max())
     low = float((np.linalg.eigvalsh(out["compiled"]) / scale[:, :, 0]).min())
     tn, tc = np.median(times["numpy"]), np.median(times["compiled"])
-    print("| blocks | numpy eigh (s) | compiled (s) | ratio | max difference | most negative eigenvalue left |")
+    print("| blocks | numpy eigh (s) | compiled (s) | ratio | max difference "
+          "| most negative eigenvalue left |")
     print("|---:|---:|---:|---:|---:|---:|")
     print(f"| {len(K)} | {tn:.3f} | {tc:.3f} | {tn / tc:.1f} | {diff:.1e} | {low:.1e} |")
     print(f"(kernel threads {kernels.threads()}, {args.repeats} repeats, h = {args.h:g} mm, "
