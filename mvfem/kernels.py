@@ -854,8 +854,7 @@ static int tridiagonal_ql(int n, double *d, double *e, double *z) {
    basis of the non-translations, K = Q (L^T K_r L) Q^T, and the projection of K is that of
    the smaller L^T K_r L carried back by Q: 2.5 instead of 12 us a 12 x 12 contact block on
    one thread (LAPACK through numpy's eigh; scripts/psd_projection.py). Others are projected
-   whole. fail[b] = 1 where QL did not
-   converge (the block left unchanged) */
+   whole. fail[b] = 1 where QL did not converge (the block left unchanged) */
 void psd_proj(long m, int p, double *K, int *fail) {
   int n = 3 * p, q = p - 1, r = 3 * q;
   double Lc[16];  /* Cholesky factor of I + 1 1^T ((p - 1) x (p - 1)) */

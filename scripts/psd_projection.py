@@ -33,7 +33,6 @@ def scene(h: float, gap: float, side: float = 6.0, thickness: float = 0.5,
     x = view.X.copy()
     x[view.X[:, 2] > 1.5, 2] = gap
     x += np.random.default_rng(0).uniform(-0.05 * h, 0.05 * h, x.shape)
-    contact.convex = False
     return contact, x
 
 
