@@ -38,6 +38,12 @@ MAX_MOVE = 0.1
 RAMP_SLACK = 5
 #: default solver.max_steps of each method
 MAX_STEPS = {"load-steps": 400, "pseudo-time": 1500}
+#: on a sequenced level (a closed coarser state carried over), pseudo-time updates are solved
+#: with the symmetric part of the tangent (MUMPS's LDL^T) while the weight is at least this x
+#: the model's stabiliser scale (the weight of a start from the open state), with the exact
+#: tangent (LU) below it: PseudoTransient.symmetric_above. Not from the open state, where the
+#: slack membrane's tangent is far from symmetric (README, "Solving")
+SYMMETRIC_ABOVE = 1.0
 
 
 @dataclass(frozen=True)
@@ -625,19 +631,23 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
             hook = _AdaptiveRamp(model, motion, lambda: ptc.history)
         on_step = _PseudoTimeProgress(load_norm, progress)
         k0 = model.stabiliser_scale
-        if seq is not None and seq["used"]:
+        # a sequenced level's Newton's regime begins 1e4 x above the usual start's weight: the
+        # symmetric tangent's cheaper factorisation down to that (SYMMETRIC_ABOVE)
+        sequenced = seq is not None and seq["used"]
+        sym_above = SYMMETRIC_ABOVE * model.stabiliser_scale
+        if sequenced:
             from mvfem.sequence import START_CAP, START_WEIGHT
 
             model.exponent_cap.value = START_CAP
             on_step = _RaiseCap(on_step, model, seq)
             k0 *= START_WEIGHT
-        ptc = PseudoTransient(problem, k0=k0, atol=tight_atol,
-                              max_steps=max_steps, on_step=on_step,
+        ptc = PseudoTransient(problem, k0=k0, atol=tight_atol, symmetric=sequenced,
+                              symmetric_above=sym_above, max_steps=max_steps, on_step=on_step,
                               max_move=MAX_MOVE * model.length_scale, ramp=hook,
                               ramp_steps=RAMP_SLACK * model.ramp_steps if hook is not None else 0)
         info = ptc.run()
         load_steps, newton_its = ptc.accepted_steps, len(ptc.history)
-        convexified = ptc.convexified
+        convexified, symmetric = ptc.convexified, ptc.symmetric_solves
         if float(model.exponent_cap.value) != MAX_EXPONENT:
             # the soft-capped problem's equilibrium: the true one only where no cell is
             # beyond the cap; else go on with the true cap from here
@@ -645,6 +655,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
             seq["cap_raised_at_step"] = newton_its
             if info.converged and not _relaxed(model):
                 ptc = PseudoTransient(problem, k0=model.stabiliser_scale, atol=tight_atol,
+                                      symmetric=sequenced, symmetric_above=sym_above,
                                       max_steps=max(max_steps - newton_its, 1),
                                       on_step=_PseudoTimeProgress(load_norm, progress),
                                       max_move=MAX_MOVE * model.length_scale)
@@ -652,6 +663,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
                 load_steps += ptc.accepted_steps
                 newton_its += len(ptc.history)
                 convexified += ptc.convexified
+                symmetric += ptc.symmetric_solves
         final_ok, stop_reason, t_reached = info.converged, ptc.stop_reason, 1.0
     else:
         final_ok, stop_reason, t_reached, load_steps, newton_its = _load_steps(
@@ -696,6 +708,7 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     }
     if ptc is not None:
         summary["convexified_tangents"] = convexified
+        summary["symmetric_tangents"] = symmetric
     if model.motion:
         summary["motion"] = {**model.motion, "ramp_steps": model.ramp_steps,
                              "order": s["motion"]}

@@ -400,6 +400,108 @@ def test_merit_change_is_the_work_of_the_residual_on_a_valve():
         pb.destroy()
 
 
+def _small_valve(prefix: str, **kw):
+    """The demo valve at 5 mm under its pressure, and its problem (point terms, potential and
+    load as a run has them)."""
+    from mvfem.model import build_model
+    from mvfem.scene import load_scene
+    from mvfem.solver import SNESProblem
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    m = build_model(scene.with_changes({"mesh.size": 5.0}), MPI.COMM_WORLD)
+    m.pressure.value = m.p_target
+    pb = SNESProblem(m.residual, m.u, m.bcs, prefix=prefix, point_terms=m.point_terms,
+                     potential=m.energy, load=m.load_form, **kw)
+    return m, pb
+
+
+@pytest.mark.mpi
+def test_symmetric_tangent_is_the_tangents_symmetric_part(comm):
+    """``SNESProblem.evaluate_tangent(symmetric=True)`` on the valve, displaced smoothly: the
+    exact tangent is not symmetric (the follower pressure on leaflets with free edges), the
+    symmetric one is its symmetric part ``(A + A^T) / 2``, computed here by PETSc's transpose
+    of the exact one, to roundoff; ``symmetric_solver`` (MUMPS's LDL^T of its upper triangle)
+    solves it. A problem without a load form, or with an iterative linear solver, has none."""
+    from dolfinx.fem import petsc as fpetsc
+    from petsc4py import PETSc
+
+    m, pb = _small_valve("sym_tangent_")
+    try:
+        X = m.V.tabulate_dof_coordinates()[:, :3]
+        x = pb.u.vector.copy()
+        x.array[:] = np.stack([0.2 * np.sin(0.2 * X[:, 1]), -0.1 * np.cos(0.15 * X[:, 0]),
+                               0.5 * np.sin(0.1 * (X[:, 0] + X[:, 1]))],
+                              axis=1).ravel()[: x.array.size]
+        fpetsc.set_bc(x, m.bcs, scale=0.0)
+        pb.evaluate_tangent(x, 0.0)
+        A = pb.A.copy()
+        pb.evaluate_tangent(x, 0.0, symmetric=True)
+        S = pb.A.copy()
+        At = A.transpose(PETSc.Mat())
+        skew = A.copy()
+        skew.axpy(-1.0, At)
+        half = A.copy()
+        half.axpy(1.0, At)
+        half.scale(0.5)
+        half.axpy(-1.0, S)
+        norm = A.norm(PETSc.NormType.FROBENIUS)
+        assert skew.norm(PETSc.NormType.FROBENIUS) > 1e-3 * norm
+        assert half.norm(PETSc.NormType.FROBENIUS) < 1e-12 * norm
+        ksp = pb.symmetric_solver()
+        assert ksp is not None and ksp.getPC().getType() == "cholesky"
+        b, y = x.duplicate(), x.duplicate()
+        b.setRandom()
+        ksp.setOperators(pb.A)
+        ksp.solve(b, y)
+        r = b.duplicate()
+        S.mult(y, r)
+        r.axpy(-1.0, b)
+        assert r.norm() < 1e-9 * b.norm()
+        for M in (A, S, At, skew, half):
+            M.destroy()
+    finally:
+        pb.destroy()
+    _, pb = _small_valve("sym_iterative_", options={"ksp_type": "gmres", "pc_type": "bjacobi"})
+    try:
+        assert pb.symmetric_solver() is None
+    finally:
+        pb.destroy()
+
+
+def test_pseudo_time_solves_with_the_symmetric_tangent_above_its_weight():
+    """``PseudoTransient.symmetric_above``: from the valve's open state, every update whose
+    weight ``k`` is at least that is solved with the symmetric tangent (LDL^T), every other one
+    with the exact tangent (LU); ``symmetric=False`` never uses it. The open state's first
+    updates are refused (``k`` grows fourfold from ``k0`` at each), so with the threshold at
+    ``16 k0`` the first eight steps see both."""
+    from mvfem.model import lumped_mass
+    from mvfem.solver import PseudoTransient
+
+    for symmetric in (True, False):
+        m, pb = _small_valve(f"sym_ptc_{int(symmetric)}_")
+        try:
+            calls = []
+            exact = pb.evaluate_tangent
+
+            def record(x, shift, symmetric=False):
+                calls.append((shift, symmetric))
+                exact(x, shift, symmetric=symmetric)
+            pb.evaluate_tangent = record
+            k0 = m.stabiliser_scale
+            pb.set_proximal(k0, weights=lumped_mass(m), centre=pb.u.vector.copy())
+            ptc = PseudoTransient(pb, k0=k0, atol=1e-30, max_steps=8, symmetric=symmetric,
+                                  symmetric_above=16 * k0)
+            ptc.run()
+            assert len(calls) >= 8
+            if symmetric:
+                assert all(sym == (k >= 16 * k0) for k, sym in calls)
+                assert {sym for _, sym in calls} == {True, False}
+            else:
+                assert not any(sym for _, sym in calls)
+        finally:
+            pb.destroy()
+
+
 @pytest.mark.parametrize("method", ["load-steps", "pseudo-time"])
 def test_zero_pressure_without_motion_stays_at_rest(tmp_path, capsys, method):
     """No pressure and no prescribed motion: the reference state is the equilibrium (u = 0,
