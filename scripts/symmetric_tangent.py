@@ -2,9 +2,11 @@
 LDL^T of the symmetric part (``SNESProblem.symmetric_solver``, the pseudo-time updates'
 solver), and how far the two updates differ.
 
-    python scripts/symmetric_tangent.py [--refine 2] [--repeats 3] [--weights 1e4,1e2,1,1e-2]
+    python scripts/symmetric_tangent.py [--refine 2] [--size MM] [--repeats 3]
+                                        [--weights 1e4,1e2,1,1e-2]
 
-Closes the demo valve refined ``--refine`` times (``mvfem.solve``, nested levels), then at
+Closes the demo valve (its mesh size, or ``--size``) refined ``--refine`` times
+(``mvfem.solve``, nested levels), then at
 its closed state, for each pseudo-time weight ``k`` (x the model's stabiliser scale), times
 the linear solve of ``(K + k M) du = -F`` both ways: the first one (MUMPS's analysis, numeric
 factorisation and solve) and the median of ``--repeats`` numeric refactorisations and solves
@@ -36,11 +38,15 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--refine", type=int, default=2)
+    p.add_argument("--size", type=float, help="mesh size (mm) instead of the demo's")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--weights", default="1e4,1e2,1,1e-2")
     args = p.parse_args(argv)
     scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
-    scene = scene.with_changes({"mesh.refine": args.refine})
+    changes = {"mesh.refine": args.refine}
+    if args.size is not None:
+        changes["mesh.size"] = args.size
+    scene = scene.with_changes(changes)
     res = solve(scene, progress=True, write=False)
     m = res.model
     pb = SNESProblem(m.residual, m.u, m.bcs, prefix="symtan_", point_terms=m.point_terms,

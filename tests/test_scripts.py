@@ -126,3 +126,19 @@ def test_psd_projection_script_agrees_with_eigh(tmp_path):
     blocks, diff, low = int(row[1]), float(row[5]), float(row[6])
     assert blocks > 1000 and diff < 1e-12 and low > -1e-12
     assert "saves" in r.stdout
+
+
+def test_symmetric_tangent_script(tmp_path):
+    """scripts/symmetric_tangent.py on the 5 mm demo refined once: a row per weight, where the
+    LU and LDL^T updates differ by less than 5 % at the sequenced start's weight (1e4: there
+    ``k M`` dominates the tangent's skew part) and both descend (positive cosines with -F)."""
+    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "symmetric_tangent.py"),
+                        "--size", "5", "--refine", "1", "--repeats", "1", "--weights", "1e4,1"],
+                       capture_output=True, text=True, env=_env(), timeout=600, check=False)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    rows = [line.split("|") for line in r.stdout.splitlines()
+            if line.startswith("| ") and line[2].isdigit()]
+    assert [float(row[1]) for row in rows] == [1e4, 1.0]
+    assert float(rows[0][5]) < 5e-2
+    for row in rows:
+        assert all(float(c) > 0 for c in row[6].split("/"))
