@@ -671,10 +671,8 @@ class PseudoTransient:
     solve_s: float = 0.0
     #: how many updates were solved again with convexified point terms
     convexified: int = 0
-    #: how many updates were solved with the symmetric tangent (``symmetric``), and their
-    #: share of ``solve_s``
+    #: how many updates were solved with the symmetric tangent (``symmetric``)
     symmetric_solves: int = 0
-    symmetric_solve_s: float = 0.0
 
     def run(self) -> SolveInfo:
         """Advance from the problem's current ``u`` until ``||F|| <= atol``; ``u`` holds the
@@ -714,23 +712,19 @@ class PseudoTransient:
 
             sym_ksp = pb.symmetric_solver() if self.symmetric else None
             k_sym = self.k0 if self.symmetric_above is None else self.symmetric_above
-            used = [ksp]  # the solver of the last update
 
-            def newton_update(symmetric: bool = False) -> None:
+            def newton_update(symmetric: bool = False) -> PETSc.KSP:
                 """``du = -(K(x) + k M)^-1 F(x)``, with ``F(x)`` in ``rhs`` (``K``'s load
-                part symmetrised with ``symmetric``)."""
+                part symmetrised with ``symmetric``); the solver that solved it."""
                 pb.evaluate_tangent(x, k, symmetric=symmetric)
                 t0 = time.perf_counter()
                 solver = sym_ksp if symmetric else ksp
                 solver.setOperators(pb.A)
                 solver.solve(rhs, du)
-                used[0] = solver
-                dt = time.perf_counter() - t0
-                self.solve_s += dt
-                if symmetric:
-                    self.symmetric_solves += 1
-                    self.symmetric_solve_s += dt
+                self.solve_s += time.perf_counter() - t0
+                self.symmetric_solves += bool(symmetric)
                 du.scale(-1.0)
+                return solver
 
             ramped = self.ramp is None
             while r > self.atol or not ramped:
@@ -760,7 +754,7 @@ class PseudoTransient:
                 early = bool(self.convexify_early and pb.point_terms and not monotone
                              and k >= self.k0 and pb.point_terms.convexify(True))
                 try:
-                    newton_update(sym_ksp is not None and k >= k_sym)
+                    solver = newton_update(sym_ksp is not None and k >= k_sym)
                 finally:
                     if early:
                         pb.point_terms.convexify(False)
@@ -774,7 +768,7 @@ class PseudoTransient:
                     # converge faster where they do descend (IPC projects always: the demo
                     # took 292 steps, not 255)
                     try:
-                        newton_update()
+                        solver = newton_update()
                         self.convexified += 1
                         log.debug(f"    convexified tangent at residual {r:.3g}")
                     finally:
@@ -794,7 +788,7 @@ class PseudoTransient:
                 # residual (below), so there the potential alone judges it
                 judged = monotone and merit is not None and not self.reject_descending
                 ok = bool(np.isfinite(r_new)) and (judged or r_new <= self.reject * r) and \
-                    used[0].getConvergedReason() > 0
+                    solver.getConvergedReason() > 0
                 E_new = None
                 if ok and not monotone and merit is not None and self.descend:
                     # in pseudo-time too an update must not raise the potential: by the

@@ -338,6 +338,30 @@ def _grown_fivefold(history):
     return out
 
 
+def _small_valve(prefix: str, **kw):
+    """The demo valve at 5 mm under its pressure, and its problem (point terms, potential and
+    load as a run has them)."""
+    from mvfem.model import build_model
+    from mvfem.scene import load_scene
+    from mvfem.solver import SNESProblem
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    m = build_model(scene.with_changes({"mesh.size": 5.0}), MPI.COMM_WORLD)
+    m.pressure.value = m.p_target
+    pb = SNESProblem(m.residual, m.u, m.bcs, prefix=prefix, point_terms=m.point_terms,
+                     potential=m.energy, load=m.load_form, **kw)
+    return m, pb
+
+
+def _smooth(m, a: float, b: float, c: float) -> np.ndarray:
+    """A displacement field (mm) smooth over the valve ``m``, on this rank's owned dofs (a
+    PETSc vector's local array)."""
+    X = m.V.tabulate_dof_coordinates()[:, :3]
+    field = np.stack([a * np.sin(0.2 * X[:, 1]), b * np.cos(0.15 * X[:, 0]),
+                      c * np.sin(0.1 * (X[:, 0] + X[:, 1]))], axis=1).ravel()
+    return field[: m.u.vector.getLocalSize()]
+
+
 def test_merit_change_is_the_work_of_the_residual_on_a_valve():
     """The pseudo-time end game judges an update by the change of its merit: the change of the
     strain, bending, chordae and contact energies minus the pressure's work along the update
@@ -351,24 +375,11 @@ def test_merit_change_is_the_work_of_the_residual_on_a_valve():
     from dolfinx.fem import petsc as fpetsc
     from petsc4py import PETSc
 
-    from mvfem.model import build_model
-    from mvfem.scene import load_scene
-    from mvfem.solver import SNESProblem
-
-    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
-    m = build_model(scene.with_changes({"mesh.size": 5.0}), MPI.COMM_WORLD)
-    m.pressure.value = m.p_target
-    pb = SNESProblem(m.residual, m.u, m.bcs, prefix="merit_test_",
-                     point_terms=m.point_terms, potential=m.energy, load=m.load_form)
+    m, pb = _small_valve("merit_test_")
     try:
-        X = m.V.tabulate_dof_coordinates()[:, :3]
-
-        def smooth(a, b, c):  # a displacement field smooth over the valve (mm)
-            return np.stack([a * np.sin(0.2 * X[:, 1]), b * np.cos(0.15 * X[:, 0]),
-                             c * np.sin(0.1 * (X[:, 0] + X[:, 1]))], axis=1).ravel()
         x, y = pb.u.vector.copy(), pb.u.vector.copy()
-        x.array[:] = smooth(0.2, -0.1, 0.5)[: x.array.size]
-        y.array[:] = x.array + smooth(-0.15, 0.2, 0.3)[: y.array.size]
+        x.array[:] = _smooth(m, 0.2, -0.1, 0.5)
+        y.array[:] = x.array + _smooth(m, -0.15, 0.2, 0.3)
         for v in (x, y):
             fpetsc.set_bc(v, m.bcs, scale=0.0)
         d = y.copy()
@@ -400,21 +411,6 @@ def test_merit_change_is_the_work_of_the_residual_on_a_valve():
         pb.destroy()
 
 
-def _small_valve(prefix: str, **kw):
-    """The demo valve at 5 mm under its pressure, and its problem (point terms, potential and
-    load as a run has them)."""
-    from mvfem.model import build_model
-    from mvfem.scene import load_scene
-    from mvfem.solver import SNESProblem
-
-    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
-    m = build_model(scene.with_changes({"mesh.size": 5.0}), MPI.COMM_WORLD)
-    m.pressure.value = m.p_target
-    pb = SNESProblem(m.residual, m.u, m.bcs, prefix=prefix, point_terms=m.point_terms,
-                     potential=m.energy, load=m.load_form, **kw)
-    return m, pb
-
-
 @pytest.mark.mpi
 def test_symmetric_tangent_is_the_tangents_symmetric_part(comm):
     """``SNESProblem.evaluate_tangent(symmetric=True)`` on the valve, displaced smoothly: the
@@ -427,11 +423,8 @@ def test_symmetric_tangent_is_the_tangents_symmetric_part(comm):
 
     m, pb = _small_valve("sym_tangent_")
     try:
-        X = m.V.tabulate_dof_coordinates()[:, :3]
         x = pb.u.vector.copy()
-        x.array[:] = np.stack([0.2 * np.sin(0.2 * X[:, 1]), -0.1 * np.cos(0.15 * X[:, 0]),
-                               0.5 * np.sin(0.1 * (X[:, 0] + X[:, 1]))],
-                              axis=1).ravel()[: x.array.size]
+        x.array[:] = _smooth(m, 0.2, -0.1, 0.5)
         fpetsc.set_bc(x, m.bcs, scale=0.0)
         pb.evaluate_tangent(x, 0.0)
         A = pb.A.copy()
