@@ -249,7 +249,9 @@ def _point_outputs(model) -> dict:
                               "max_intrusion_mm": pen["max_intrusion_mm"],
                               "intersections": pen["intersections"],
                               # full searches for the Verlet candidate lists in the run
-                              "list_builds": model.contact.list_builds}
+                              "list_builds": model.contact.list_builds,
+                              # lists patched where a few nodes had moved beyond them
+                              "list_patches": model.contact.list_patches}
         if getattr(model.surface, "annulus_curve", None) is not None:
             v = valve_metrics(model, x)
             v.pop("_coapting")

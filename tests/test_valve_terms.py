@@ -1161,6 +1161,60 @@ def test_contact_lists_find_the_pairs_of_a_full_search(valve_view, compiled, mon
     assert np.array_equal(got[0], i[d < 0.5]) and np.array_equal(got[1], j[d < 0.5])
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_contact_lists_are_patched_where_few_nodes_moved(valve_view, compiled, monkeypatch):
+    """A node carried 1.3-1.7 mm onto a triangle of the other leaflet beyond the lists' 1.5
+    mm radius, and two triangles so carried onto a node: the lists are patched, not rebuilt
+    (the moved nodes' pairs, and those of their triangles and edges, searched afresh), and
+    the pairs, blocks and step limits are bit for bit those of the full search, the new
+    pairs among them; the patch serves every call at that state. Many nodes moved: a
+    build."""
+    from mvfem import kernels
+    from mvfem.contact import Contact
+
+    if not compiled:
+        monkeypatch.setattr(kernels, "load", lambda: None)
+    view, closing = valve_view
+    cached = Contact(view, 0.5, 3.2e4)
+    full = Contact(view, 0.5, 3.2e4, skin=0.0)
+    x0 = closing(0.3, 5.5)
+    cached(x0)
+    assert (cached.list_builds, cached.list_patches) == (1, 0)
+    base = set(zip(cached._verlet[0].s.tolist(), cached._verlet[0].t.tolist()))
+    # a node each of three pairs 1.6-2.0 mm apart, moved to 0.3 mm from its triangle
+    ps, pt, pq, pd = full.active_pairs(x0, within=2.0)
+    far = np.flatnonzero((pd > 1.6) & (pq.min(axis=1) > 0.1))
+    far = far[np.unique(ps[far], return_index=True)[1]][:3]
+    assert len(far) == 3
+    x1 = x0.copy()
+    for n, k in enumerate(far):
+        move = (pd[k] - 0.3) / pd[k] * (pq[k] @ x0[view.cells[pt[k]]] - x0[ps[k]])
+        if n == 0:
+            x1[ps[k]] += move
+        else:
+            x1[view.cells[pt[k]]] -= move
+    assert np.count_nonzero(np.linalg.norm(x1 - x0, axis=1)) <= 7
+    for a, b in zip(cached.active_pairs(x1), full.active_pairs(x1)):
+        assert np.array_equal(a, b)
+    for a, b in zip(cached.edge_pairs(x1), full.edge_pairs(x1)):
+        assert np.array_equal(a, b)
+    _same_blocks(cached(x1), full(x1))
+    got = set(zip(*(a.tolist() for a in cached.active_pairs(x1)[:2])))
+    assert (ps[far[0]], pt[far[0]]) in got - base
+    assert {(ps[k], pt[k]) for k in far[1:]} <= got - base
+    rng = np.random.default_rng(5)
+    free = view.free.all(axis=1)[:, None]
+    for _ in range(3):
+        dx = 0.05 * rng.normal(size=x1.shape) * free
+        assert cached.step_limit(x1, dx) == full.step_limit(x1, dx)
+    assert (cached.list_builds, cached.list_patches) == (1, 1)
+    # every node moved: built anew
+    x2 = closing(0.3, 6.7)
+    for a, b in zip(cached.active_pairs(x2), full.active_pairs(x2)):
+        assert np.array_equal(a, b)
+    assert (cached.list_builds, cached.list_patches) == (2, 1)
+
+
 @pytest.mark.parametrize("symmetric", [False, True])
 def test_swept_pairs_are_every_pair_that_may_meet_once(symmetric):
     """The swept search's pairs are those of a brute-force loop over all pairs: centres within
