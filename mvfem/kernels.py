@@ -52,6 +52,10 @@ void pt_dist(long m, const double *x, const int64_t *cells, const int64_t *s, co
              double *d);
 void ee_dist(long m, const double *x, const int64_t *edges, const int64_t *i, const int64_t *j,
              double *d);
+void pt_dist_cut(long m, const double *x, const int64_t *cells, const int64_t *s,
+                 const int64_t *t, const double *lb, const double *D, double cut, double *d);
+void ee_dist_cut(long m, const double *x, const int64_t *edges, const int64_t *i,
+                 const int64_t *j, const double *lb, const double *D, double cut, double *d);
 void hinge_cos_sin(long m, const double *y, double *c, double *s);
 void hinge_energy(long m, const double *y, const double *c0, const double *s0,
                   const double *k, double *E, double *g);
@@ -482,6 +486,40 @@ void ee_dist(long m, const double *x, const int64_t *edges, const int64_t *i, co
   for (long k = 0; k < m; k++) {
     double s, t;
     const int64_t *a = edges + 2 * i[k], *b = edges + 2 * j[k];
+    d[k] = seg_closest(x + 3 * a[0], x + 3 * a[1], x + 3 * b[0], x + 3 * b[1], &s, &t);
+  }
+}
+
+/* pt_dist where a pair may be closer than cut: the pair k is at least lb[k] - D[node] -
+   max D[vertex] apart (lb its distance, or a lower bound of it, at positions from which
+   each node n has since moved by D[n]); where that is cut or more, d[k] stays as it was
+   (INFINITY: not computed). Entries of d already finite are kept (a call with a larger cut
+   completes an earlier one). */
+void pt_dist_cut(long m, const double *x, const int64_t *cells, const int64_t *s,
+                 const int64_t *t, const double *lb, const double *D, double cut, double *d) {
+  PAR
+  for (long k = 0; k < m; k++) {
+    if (isfinite(d[k])) continue;
+    const int64_t *c = cells + 3 * t[k];
+    double Dt = D[c[0]] > D[c[1]] ? D[c[0]] : D[c[1]];
+    Dt = Dt > D[c[2]] ? Dt : D[c[2]];
+    if (lb[k] - D[s[k]] - Dt >= cut) continue;
+    double bary[3];
+    d[k] = closest_tri(x + 3 * s[k], x + 3 * c[0], x + 3 * c[1], x + 3 * c[2], bary);
+  }
+}
+
+/* ee_dist where a pair may be closer than cut (as pt_dist_cut) */
+void ee_dist_cut(long m, const double *x, const int64_t *edges, const int64_t *i,
+                 const int64_t *j, const double *lb, const double *D, double cut, double *d) {
+  PAR
+  for (long k = 0; k < m; k++) {
+    if (isfinite(d[k])) continue;
+    const int64_t *a = edges + 2 * i[k], *b = edges + 2 * j[k];
+    double Da = D[a[0]] > D[a[1]] ? D[a[0]] : D[a[1]];
+    double Db = D[b[0]] > D[b[1]] ? D[b[0]] : D[b[1]];
+    if (lb[k] - Da - Db >= cut) continue;
+    double s, t;
     d[k] = seg_closest(x + 3 * a[0], x + 3 * a[1], x + 3 * b[0], x + 3 * b[1], &s, &t);
   }
 }
@@ -1149,6 +1187,35 @@ def segment_distance(x: np.ndarray, edges: np.ndarray, i: np.ndarray,
     d = np.empty(len(i))
     lib.ee_dist(len(i), _ptr(ffi, x), _index(ffi, edges), _index(ffi, i), _index(ffi, j),
                 _ptr(ffi, d))
+    return d
+
+
+def point_triangle_distance_cut(x: np.ndarray, cells: np.ndarray, s: np.ndarray,
+                                t: np.ndarray, lb: np.ndarray, D: np.ndarray, cut: float,
+                                out: np.ndarray) -> np.ndarray:
+    """:func:`point_triangle_distance` into ``out`` (float64, contiguous) of the pairs that
+    may be closer than ``cut`` and whose entry there is inf; the others are left as they
+    are. Pair ``k`` is at least ``lb[k] - D[s] - max D[vertices]`` apart, with ``lb`` its
+    distance (or a lower bound of it) at positions from which node ``n`` has since moved by
+    ``D[n]``."""
+    ffi, lib = load()
+    x, cells, s, t, lb, D = _f64(x), _i64(cells), _i64(s), _i64(t), _f64(lb), _f64(D)
+    d = _out(out, (len(s),))
+    lib.pt_dist_cut(len(s), _ptr(ffi, x), _index(ffi, cells), _index(ffi, s), _index(ffi, t),
+                    _ptr(ffi, lb), _ptr(ffi, D), float(cut), _ptr(ffi, d))
+    return d
+
+
+def segment_distance_cut(x: np.ndarray, edges: np.ndarray, i: np.ndarray, j: np.ndarray,
+                         lb: np.ndarray, D: np.ndarray, cut: float,
+                         out: np.ndarray) -> np.ndarray:
+    """:func:`segment_distance` into ``out`` as :func:`point_triangle_distance_cut` (an edge
+    moves by its nodes' larger ``D``)."""
+    ffi, lib = load()
+    x, edges, i, j, lb, D = _f64(x), _i64(edges), _i64(i), _i64(j), _f64(lb), _f64(D)
+    d = _out(out, (len(i),))
+    lib.ee_dist_cut(len(i), _ptr(ffi, x), _index(ffi, edges), _index(ffi, i), _index(ffi, j),
+                    _ptr(ffi, lb), _ptr(ffi, D), float(cut), _ptr(ffi, d))
     return d
 
 

@@ -935,6 +935,46 @@ def test_compiled_contact_kernels_match_numpy():
 
 
 
+def test_cut_distances_skip_only_pairs_beyond_the_cut():
+    """The list filter's distances with a cut (``point_triangle_distance_cut``,
+    ``segment_distance_cut``): pairs whose distance at earlier positions, less their nodes'
+    motion since, is the cut or more are left inf, every other pair gets the distance of
+    the uncut kernels bit for bit; those skipped are truly that far; a second call with a
+    larger cut fills in the pairs it newly reaches and keeps the rest."""
+    from mvfem import kernels
+
+    if kernels.load() is None:
+        pytest.fail("the contact kernels did not compile (a C compiler is part of make setup)")
+    rng = np.random.default_rng(8)
+    N, m = 400, 5000
+    x0 = rng.uniform(0, 6, size=(N, 3))
+    move = rng.normal(scale=0.05, size=(N, 3))
+    move[rng.random(N) < 0.05] *= 20                  # a few nodes far, most a little
+    x = x0 + move
+    D = np.linalg.norm(move, axis=1)
+    cells = np.array([rng.choice(N, 3, replace=False) for _ in range(m)])
+    edges = cells[:, :2]
+    s, t = rng.integers(0, N, m), rng.integers(0, m, m)
+    for dist, cut_fn, bound in (
+            (kernels.point_triangle_distance, kernels.point_triangle_distance_cut,
+             lambda: D[s] + D[cells[t]].max(axis=1)),
+            (kernels.segment_distance, kernels.segment_distance_cut,
+             lambda: D[edges[s]].max(axis=1) + D[edges[t]].max(axis=1))):
+        lb = dist(x0, cells if dist is kernels.point_triangle_distance else edges, s, t)
+        full = dist(x, cells if dist is kernels.point_triangle_distance else edges, s, t)
+        geom = cells if dist is kernels.point_triangle_distance else edges
+        out = np.full(m, np.inf)
+        cut_fn(x, geom, s, t, lb, D, 1.0, out)
+        skipped = lb - bound() >= 1.0
+        assert 0.2 < skipped.mean() < 0.95
+        assert np.array_equal(out[~skipped], full[~skipped])
+        assert np.all(np.isinf(out[skipped])) and np.all(full[skipped] >= 1.0 - 1e-12)
+        cut_fn(x, geom, s, t, lb, D, 2.0, out)
+        more = lb - bound() >= 2.0
+        assert more.sum() < skipped.sum()
+        assert np.array_equal(out[~more], full[~more]) and np.all(np.isinf(out[more]))
+
+
 def test_kernel_threads_give_the_results_of_one():
     """The compiled kernels' loops run on OpenMP threads (mvfem.kernels.threads): with two
     threads every kernel gives, bit for bit, what one thread gives (each loop writes its own
@@ -965,6 +1005,7 @@ def test_kernel_threads_give_the_results_of_one():
     blocks = rng.normal(size=(m, 12, 12))
     blocks = blocks + np.swapaxes(blocks, 1, 2)
     invariant = _spectral_blocks(rng, m, 12, True)[0]  # the projection's reduced path
+    lb, D = rng.uniform(0, 3, m), rng.uniform(0, 0.5, N)
 
     def run():
         d, g = kernels.point_triangle_gradient(y)
@@ -974,6 +1015,8 @@ def test_kernel_threads_give_the_results_of_one():
                kernels.edge_edge_hessian(ye, w, eps, 0.5),
                kernels.point_triangle_distance(x, cells, s, t),
                kernels.segment_distance(x, edges, s, t),
+               kernels.point_triangle_distance_cut(x, cells, s, t, lb, D, 1.5, np.full(m, np.inf)),
+               kernels.segment_distance_cut(x, edges, s, t, lb, D, 1.5, np.full(m, np.inf)),
                kernels.hinge_hessian_add(y, c0, s0, kh, place, 5000),
                *kernels.elements_csr(N, free, [(nodes, blocks)]),
                contact.project_psd(blocks.copy()),
