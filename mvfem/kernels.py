@@ -647,6 +647,16 @@ void hinge_hess_add(long m, const double *y, const double *c0, const double *s0,
    list and accumulator). Returns the entries; -1 where memory ran out. */
 #define SOME(v) (fr[3 * (v)] | fr[3 * (v) + 1] | fr[3 * (v) + 2])
 #define NFREE(v) (fr[3 * (v)] + fr[3 * (v) + 1] + fr[3 * (v) + 2])
+/* A row's element rows lie anywhere in K (their stiffness rows, 3 of 3 k doubles each, are
+   read in bucket order): fetched AHEAD entries early, the rows of the 165,579 blocks of a
+   twice-refined demo's fine tangent took 30 ms instead of 55-60 on two threads, 55 instead
+   of 110 on one (4-32 ahead alike) */
+#define AHEAD 8
+#if defined(__GNUC__) || defined(__clang__)
+#define PREFETCH(a) __builtin_prefetch(a)
+#else
+#define PREFETCH(a) ((void)0)
+#endif
 /* row node v's column nodes (free somewhere), sorted, into list; their count */
 static long row_nodes(long v, const int64_t *start, const int64_t *bucket, const int64_t *k,
                       int64_t **nodes, const uint8_t *fr, int64_t *mark, int64_t *list) {
@@ -722,6 +732,13 @@ long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, d
       for (long a = 0; a < nc; a++) ts[tl[a]] = a;
       for (long a = 0; a < 9 * nc; a++) ta[a] = 0.0;
       for (int64_t p = start[v]; p < start[v + 1]; p++) {
+        if (p + AHEAD < start[N]) {   /* the stiffness rows of the element row AHEAD on */
+          int64_t g2 = bucket[p + AHEAD] >> 40, q2 = bucket[p + AHEAD] & (((int64_t)1 << 40) - 1);
+          long k2 = k[g2];
+          const char *f = (const char *)(K[g2] + 9 * k2 * q2);   /* 9 k^2 e + 3 a (3 k) */
+          for (long c = 0; c < (long)(9 * k2 * sizeof(double)); c += 64) PREFETCH(f + c);
+          PREFETCH(nodes[g2] + q2 - q2 % k2);
+        }
         int64_t g = bucket[p] >> 40, q = bucket[p] & (((int64_t)1 << 40) - 1);
         long kk = k[g], e = q / kk, a = q % kk, st = 3 * kk;
         const int64_t *el = nodes[g] + e * kk;
@@ -750,6 +767,7 @@ long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, d
   return indptr[3 * N];
 }
 #undef NFREE
+#undef AHEAD
 #undef SOME
 
 /* How many entries of the CSR pattern b (n rows, columns sorted in each row) are not in the
