@@ -578,7 +578,8 @@ class Contact:
             filtered 0.34 + 1.06 against 1.1 + 3.2 million candidates a call, and took 243.5
             against 270.0 s of contact in 9 list builds against 4, the same 290 fine steps):
             the admissible pairs closer than ``thickness + skin`` are searched once and
-            reused until the nodes have moved half the skin (see :meth:`_lists`); 0 searches
+            reused until the nodes have moved half the skin, patched where only a few have
+            (see :meth:`_lists`); 0 searches
             in full at every call. The pairs found are the same either way.
     """
 
@@ -597,7 +598,8 @@ class Contact:
         #: lists kept, the latest first: a refused trial state sends the solve back to
         #: where it was (131 -> 110 builds on the demo's calls with two)
         self.keep_lists = 2
-        #: (x, lists, node-triangle and edge distances over the lists) of the last filter
+        #: (x, lists, reach, node-triangle and edge distances over the lists) of the last
+        #: filter
         self._memo: tuple | None = None
         #: kept lists are patched at a state (:meth:`_patch`), not rebuilt, while at most
         #: this fraction of the nodes have left them

@@ -733,7 +733,8 @@ long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, d
       for (long a = 0; a < 9 * nc; a++) ta[a] = 0.0;
       for (int64_t p = start[v]; p < start[v + 1]; p++) {
         if (p + AHEAD < start[N]) {   /* the stiffness rows of the element row AHEAD on */
-          int64_t g2 = bucket[p + AHEAD] >> 40, q2 = bucket[p + AHEAD] & (((int64_t)1 << 40) - 1);
+          int64_t g2 = bucket[p + AHEAD] >> 40;
+          int64_t q2 = bucket[p + AHEAD] & (((int64_t)1 << 40) - 1);
           long k2 = k[g2];
           const char *f = (const char *)(K[g2] + 9 * k2 * q2);   /* 9 k^2 e + 3 a (3 k) */
           for (long c = 0; c < (long)(9 * k2 * sizeof(double)); c += 64) PREFETCH(f + c);
@@ -1216,12 +1217,7 @@ def point_triangle_distance_cut(x: np.ndarray, cells: np.ndarray, s: np.ndarray,
     are. Pair ``k`` is at least ``lb[k] - D[s] - max D[vertices]`` apart, with ``lb`` its
     distance (or a lower bound of it) at positions from which node ``n`` has since moved by
     ``D[n]``."""
-    ffi, lib = load()
-    x, cells, s, t, lb, D = _f64(x), _i64(cells), _i64(s), _i64(t), _f64(lb), _f64(D)
-    d = _out(out, (len(s),))
-    lib.pt_dist_cut(len(s), _ptr(ffi, x), _index(ffi, cells), _index(ffi, s), _index(ffi, t),
-                    _ptr(ffi, lb), _ptr(ffi, D), float(cut), _ptr(ffi, d))
-    return d
+    return _distance_cut("pt_dist_cut", x, cells, s, t, lb, D, cut, out)
 
 
 def segment_distance_cut(x: np.ndarray, edges: np.ndarray, i: np.ndarray, j: np.ndarray,
@@ -1229,11 +1225,17 @@ def segment_distance_cut(x: np.ndarray, edges: np.ndarray, i: np.ndarray, j: np.
                          out: np.ndarray) -> np.ndarray:
     """:func:`segment_distance` into ``out`` as :func:`point_triangle_distance_cut` (an edge
     moves by its nodes' larger ``D``)."""
+    return _distance_cut("ee_dist_cut", x, edges, i, j, lb, D, cut, out)
+
+
+def _distance_cut(kernel: str, x, shapes, i, j, lb, D, cut: float, out) -> np.ndarray:
+    """Call the cut distance ``kernel`` on the pairs ``(i[k], j[k])`` of nodes and triangles
+    or of edges (``shapes``, their node indices)."""
     ffi, lib = load()
-    x, edges, i, j, lb, D = _f64(x), _i64(edges), _i64(i), _i64(j), _f64(lb), _f64(D)
+    x, shapes, i, j, lb, D = _f64(x), _i64(shapes), _i64(i), _i64(j), _f64(lb), _f64(D)
     d = _out(out, (len(i),))
-    lib.ee_dist_cut(len(i), _ptr(ffi, x), _index(ffi, edges), _index(ffi, i), _index(ffi, j),
-                    _ptr(ffi, lb), _ptr(ffi, D), float(cut), _ptr(ffi, d))
+    getattr(lib, kernel)(len(i), _ptr(ffi, x), _index(ffi, shapes), _index(ffi, i),
+                         _index(ffi, j), _ptr(ffi, lb), _ptr(ffi, D), float(cut), _ptr(ffi, d))
     return d
 
 
