@@ -1339,6 +1339,16 @@ def test_contact_step_limit_on_the_lists_is_the_swept_search(valve_view, monkeyp
         dx[ps[k]] = 0.6 * unit
         dx[view.cells[pt[k]]] = -0.6 * unit
         updates.append(dx)
+    # the same pairs brought through each other by the node alone, or by the triangle alone,
+    # moving 1.2 mm, every other node 0.02 mm at random: beyond the lists' reach, so the
+    # lists serve the pairs of slow nodes and triangles, the swept search the fast ones'
+    for k in far[:2]:
+        foot = pq[k] @ x[view.cells[pt[k]]]
+        unit = (foot - x[ps[k]]) / pd[k]
+        for mover in (ps[k:k + 1], view.cells[pt[k]]):
+            dx = 0.02 * rng.normal(size=x.shape) * free
+            dx[mover] = 1.2 * unit * (1 if len(mover) == 1 else -1)
+            updates.append(dx)
     alphas = []
     for n, dx in enumerate(updates):
         before = len(swept)
@@ -1349,7 +1359,64 @@ def test_contact_step_limit_on_the_lists_is_the_swept_search(valve_view, monkeyp
         alphas.append((a, on_lists))
     assert not alphas[2][1] and alphas[2][0] < 1 and np.linalg.norm(updates[2], axis=1).max() > 1.4
     assert any(a < 1 and on for a, on in alphas[6:11])
-    assert all(a < 1 and on for a, on in alphas[11:])
+    assert all(a < 1 and on for a, on in alphas[11:14])
+    assert all(a < 1 and not on for a, on in alphas[14:])
+    assert cached.list_builds == 1
+
+
+def test_step_limit_finds_a_still_node_met_by_a_fast_triangle():
+    """Two sheets of 0.5 mm triangles 1.2 mm apart in the reference, now 0.8 mm, with a node of
+    the lower one raised 0.3 mm under the interior of a triangle of the upper one, which
+    moves 1.2 mm down (beyond the lists' reach: the lists for the still nodes and
+    triangles, the swept search for the fast ones). The raised node meets the triangle
+    first, at t = 0.5 / 1.2, before the triangle's vertices reach the lower sheet: the
+    step limit is 0.8 of that, from the lists and from the full search alike."""
+    import ufl
+    from dolfinx import fem, mesh
+    from mpi4py import MPI
+
+    from mvfem.contact import Contact
+    from mvfem.nodal import NodalView
+
+    n, h = 8, 0.5
+    g = np.arange(n + 1) * h
+    grid = np.array([[a, b] for b in g for a in g])
+    quads = [(j * (n + 1) + i, j * (n + 1) + i + 1, (j + 1) * (n + 1) + i,
+              (j + 1) * (n + 1) + i + 1) for j in range(n) for i in range(n)]
+    tri = np.array([t for a, b, c, d in quads for t in ((a, b, d), (a, d, c))])
+    m = len(grid)
+    X = np.concatenate([np.c_[grid, np.zeros(m)], np.c_[grid + [0.13, 0.07], np.full(m, 1.2)]])
+    cell = ufl.Cell("triangle", geometric_dimension=3)
+    msh = mesh.create_mesh(MPI.COMM_SELF, np.concatenate([tri, tri + m]).astype(np.int64), X,
+                           ufl.Mesh(ufl.VectorElement("Lagrange", cell, 1)))
+    V = fem.VectorFunctionSpace(msh, ("Lagrange", 1))
+    view = NodalView(V)
+    Xv, cells = view.X, view.cells
+    lower = Xv[:, 2] < 0.6
+    p = int(np.argmin(np.linalg.norm(Xv[:, :2] - 2.0, axis=1) + 9 * ~lower))
+    x = Xv.copy()
+    x[~lower, 2] = 0.8
+    x[p, 2] = 0.3
+    # the upper triangle over the raised node: it contains the node's (x, y)
+    up = np.flatnonzero(~lower[cells].any(axis=1))
+    a, b, c = (x[cells[up, k], :2] for k in range(3))
+
+    def side(u, v, w):
+        return (v[:, 0] - u[:, 0]) * (w[:, 1] - u[:, 1]) - (v[:, 1] - u[:, 1]) * (w[:, 0] - u[:, 0])
+
+    q = np.broadcast_to(x[p, :2], a.shape)
+    inside = (np.sign(side(a, b, q)) == np.sign(side(b, c, q))) \
+        & (np.sign(side(b, c, q)) == np.sign(side(c, a, q)))
+    T = up[inside]
+    assert len(T) == 1
+    dx = np.zeros_like(x)
+    dx[cells[T[0]], 2] = -1.2
+    cached, full = Contact(view, 0.5, 3.2e4), Contact(view, 0.5, 3.2e4, skin=0.0)
+    assert cached.thickness + cached.skin == 1.5
+    cached.active_pairs(x)                      # the lists, built at x
+    alpha = cached.step_limit(x, dx)
+    assert alpha == full.step_limit(x, dx)
+    assert alpha == pytest.approx(0.8 * 0.5 / 1.2, rel=1e-9)
     assert cached.list_builds == 1
 
 
