@@ -38,15 +38,16 @@ The search: Verlet lists. The admissible pairs closer than the thickness plus a 
 once (KD-trees, the exclusion tests) and kept while no node has moved half the skin since:
 every pair closer than the thickness is then in them (:meth:`Contact._lists`), and the step
 limit uses them too while they reach twice the update's largest motion (a pair closes by at
-most that much); beyond that, for the pairs of nodes, triangles and edges that move at most a
-quarter of their reach, the swept search for the others. Where a few nodes have moved further (a pseudo-time step's trial states),
-the lists are patched: the pairs of those nodes, and of their triangles and edges, searched
-afresh (:meth:`Contact._patch`). The lists keep each pair's distance where they were built, so
-a call skips the pairs that their nodes' motion since cannot have brought within reach. A
-compiled distance over the lists picks the few pairs that need the exact (numpy)
-distance, so the pairs, distances and closest points are those of a full search at every call,
-bit for bit. On the 647 contact calls recorded from the 2 mm demo, replayed: 40 -> 11 ms a
-call for the pairs and their energy, 33 -> 12 ms for a step limit (110 list builds).
+most that much); beyond that, it uses them for the pairs of nodes, triangles and edges that
+move at most a quarter of their reach, and the swept search for the others. Where a few nodes
+have moved further (a pseudo-time step's trial states), the lists are patched: the pairs of
+those nodes, and of their triangles and edges, searched afresh (:meth:`Contact._patch`). The
+lists keep each pair's distance where they were built, so a call skips the pairs that their
+nodes' motion since cannot have brought within reach. A compiled distance over the lists picks
+the few pairs that need the exact (numpy) distance, so the pairs, distances and closest points
+are those of a full search at every call, bit for bit. On the 647 contact calls recorded from
+the 2 mm demo, replayed: 40 -> 11 ms a call for the pairs and their energy, 33 -> 12 ms for a
+step limit (110 list builds).
 """
 
 from __future__ import annotations

@@ -1402,7 +1402,8 @@ def test_step_limit_finds_a_still_node_met_by_a_fast_triangle():
     a, b, c = (x[cells[up, k], :2] for k in range(3))
 
     def side(u, v, w):
-        return (v[:, 0] - u[:, 0]) * (w[:, 1] - u[:, 1]) - (v[:, 1] - u[:, 1]) * (w[:, 0] - u[:, 0])
+        return ((v[:, 0] - u[:, 0]) * (w[:, 1] - u[:, 1])
+                - (v[:, 1] - u[:, 1]) * (w[:, 0] - u[:, 0]))
 
     q = np.broadcast_to(x[p, :2], a.shape)
     inside = (np.sign(side(a, b, q)) == np.sign(side(b, c, q))) \
