@@ -556,6 +556,10 @@ class _Lists:
         self.x, self.s, self.t, self.i, self.j = x, s, t, i, j
         self.d_nt, self.d_ee = d_nt, d_ee
 
+    def drift(self, x: np.ndarray) -> np.ndarray:
+        """Each node's distance from its position ``self.x`` to ``x``."""
+        return np.sqrt(np.einsum("ij,ij->i", x - self.x, x - self.x))
+
 
 class Contact:
     """Barrier contact over a whole surface, node-triangle and edge-edge (rank 0 finds the
@@ -877,12 +881,13 @@ class Contact:
             return patch[2]
         best, fewest = None, np.inf
         for lists in self._verlet:
-            moved = np.einsum("ij,ij->i", x - lists.x, x - lists.x) >= h * h
+            D = lists.drift(x)
+            moved = D >= h
             if not moved.any():
                 return lists
             n = int(np.count_nonzero(moved))
             if n < fewest:
-                best, fewest = (lists, moved), n
+                best, fewest = (lists, moved, D), n
         if best is not None and fewest <= self.patch_fraction * len(x):
             lists = self._patch(x, reach, *best)
             self._patched = (x.copy(), reach, lists)
@@ -895,10 +900,11 @@ class Contact:
         self.list_builds += 1
         return self._verlet[0]
 
-    def _patch(self, x: np.ndarray, reach: float, lists: _Lists, moved: np.ndarray) -> _Lists:
+    def _patch(self, x: np.ndarray, reach: float, lists: _Lists, moved: np.ndarray,
+               D: np.ndarray) -> _Lists:
         """``lists`` made valid at ``x`` for ``reach``: the pairs of its nodes, triangles and
         edges none of whose nodes has ``moved`` (by half the lists' radius less ``reach``,
-        :meth:`_lists`) are kept, and those of the others searched afresh at ``x`` within
+        :meth:`_lists`; ``D`` the nodes' motion since the lists' positions) are kept, and those of the others searched afresh at ``x`` within
         ``reach``; sorted as a full search's. A pseudo-time step's trial states move a few
         nodes far (on the demo refined twice, 1 % of them more than 0.05 mm, the farthest
         0.25-1.1 mm): patching their pairs (KD-trees of the moved against all) takes a few
@@ -909,7 +915,6 @@ class Contact:
         from scipy.spatial import cKDTree
 
         cells, e = self.view.cells, self._edges
-        D = np.sqrt(np.einsum("ij,ij->i", x - lists.x, x - lists.x))
         moved_tri = moved[cells].any(axis=1)
         moved_edge = moved[e].any(axis=1)
         keep = ~(moved[lists.s] | moved_tri[lists.t])
@@ -974,7 +979,7 @@ class Contact:
             d_nt, d_ee = memo[3], memo[4]
         else:
             d_nt, d_ee = np.full(len(lists.s), np.inf), np.full(len(lists.i), np.inf)
-        D = np.sqrt(np.einsum("ij,ij->i", x - lists.x, x - lists.x))
+        D = lists.drift(x)
         cut = reach + 2 * self._margin
         kernels.point_triangle_distance_cut(x, self.view.cells, lists.s, lists.t, lists.d_nt,
                                             D, cut, out=d_nt)
