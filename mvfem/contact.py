@@ -490,7 +490,9 @@ def project_psd(K: np.ndarray) -> np.ndarray:
     ``scripts/psd_projection.py``), which is the fallback: long stacks split over the
     kernels' threads (``eigh`` releases the GIL), with OpenBLAS on one thread
     (:func:`mvfem.kernels.one_blas_thread`).
-    The same blocks either way, to roundoff."""
+    The same blocks either way, to roundoff. A point whose rows and columns are zero (a node
+    that the pair's closest points leave out) keeps them zero, exactly: the projection's
+    roundoff would otherwise couple it in the matrix's pattern."""
     from mvfem import kernels
 
     n = K.shape[-1]
@@ -526,8 +528,14 @@ def _project_psd(K: np.ndarray) -> np.ndarray:
     w, V = np.linalg.eigh(K)
     neg = w[:, 0] < 0
     if neg.any():
+        Kn = K[neg]
         Vn = V[neg]
-        K[neg] = (Vn * np.maximum(w[neg], 0.0)[:, None, :]) @ np.swapaxes(Vn, 1, 2)
+        P = (Vn * np.maximum(w[neg], 0.0)[:, None, :]) @ np.swapaxes(Vn, 1, 2)
+        # a point whose rows (and columns) are zero stays out, exactly (as the kernel's)
+        m, n = Kn.shape[0], Kn.shape[1]
+        out = (Kn.reshape(m, n // 3, 3 * n) == 0).all(axis=2).repeat(3, axis=1)
+        P[out[:, :, None] | out[:, None, :]] = 0.0
+        K[neg] = P
     return K
 
 

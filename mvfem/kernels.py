@@ -34,8 +34,8 @@ import numpy as np
 __all__ = ["load", "point_triangle_gradient", "point_triangle_hessian",
            "point_triangle_stiffness", "edge_edge_energy",
            "edge_edge_hessian", "point_triangle_distance", "segment_distance", "elements_csr",
-           "csr_missing", "threads", "one_blas_thread", "hinge_cos_sin", "hinge_energy",
-           "hinge_hessian", "hinge_hessian_add", "psd_project"]
+           "csr_missing", "csr_drop_zero_blocks", "threads", "one_blas_thread",
+           "hinge_cos_sin", "hinge_energy", "hinge_hessian", "hinge_hessian_add", "psd_project"]
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +68,7 @@ long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, d
                   int64_t *work);
 long csr_missing(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib,
                  const int64_t *jb);
+long csr_drop_zero_blocks(long N, int64_t *indptr, int64_t *cols, double *vals, int64_t *mark);
 void psd_proj(long m, int p, double *K, int *fail);
 int set_threads(int n);
 int team_size(void);
@@ -771,6 +772,31 @@ long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, d
 #undef AHEAD
 #undef SOME
 
+/* The CSR rows of elements_csr (3 N rows, node-major, columns sorted) without the 3 x 3
+   node blocks all of whose entries are zero, in place: the new number of entries. A contact
+   pair's 12 x 12 block is zero wherever its closest points leave a node out (a node beyond
+   the edge or vertex of the triangle that is closest, an edge's end beyond the other
+   edge's closest point); kept, those zeros were a third of the twice-refined demo's matrix
+   and half of MUMPS's factorisation. mark: N integers (scratch). */
+long csr_drop_zero_blocks(long N, int64_t *indptr, int64_t *cols, double *vals,
+                          int64_t *mark) {
+  for (long w = 0; w < N; w++) mark[w] = -1;
+  int64_t at = 0, next = indptr[0];
+  for (long v = 0; v < N; v++) {
+    int64_t lo = next, hi = indptr[3 * v + 3];
+    for (int64_t p = lo; p < hi; p++)
+      if (vals[p] != 0.0) mark[cols[p] / 3] = v;
+    for (int i = 0; i < 3; i++) {
+      int64_t r = 3 * v + i, end = indptr[r + 1];
+      for (int64_t p = next; p < end; p++)
+        if (mark[cols[p] / 3] == v) { cols[at] = cols[p]; vals[at++] = vals[p]; }
+      next = end;
+      indptr[r + 1] = at;
+    }
+  }
+  return at;
+}
+
 /* How many entries of the CSR pattern b (n rows, columns sorted in each row) are not in the
    pattern a (same rows, columns sorted): a merge of each row pair. */
 long csr_missing(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib,
@@ -959,6 +985,9 @@ void psd_proj(long m, int p, double *K, int *fail) {
     int neg = 0;
     for (int k = 0; k < k_n; k++) neg += d[k] < 0.0;
     if (!neg) continue;
+    int zero[4] = {1, 1, 1, 1};   /* points whose rows (and columns) are all zero */
+    for (int a = 0; a < p; a++)
+      for (int i = 3 * a * n; i < 3 * (a + 1) * n && zero[a]; i++) zero[a] = Kb[i] == 0.0;
     if (reduced) {
       /* U = T^T L^-T V, column k the eigenvector k in the n coordinates: W = L^-T V by back
          substitution (L^T upper triangular), then U rows of point 0 = -(sum of W's points) */
@@ -985,6 +1014,13 @@ void psd_proj(long m, int p, double *K, int *fail) {
         for (int c = 0; c < n; c++) Kb[row * n + c] -= f * U[c * 12 + k];
       }
     }
+    /* a point the block leaves out stays out: its rows and columns are zero in the exact
+       projection (K e = 0 there), not the roundoff of the eigenvectors, which would couple
+       it in the matrix's pattern */
+    for (int a = 0; a < p; a++)
+      if (zero[a])
+        for (int i = 3 * a; i < 3 * a + 3; i++)
+          for (int c = 0; c < n; c++) Kb[i * n + c] = Kb[c * n + i] = 0.0;
   }
 }
 """
@@ -1331,6 +1367,18 @@ def elements_csr(N: int, free: np.ndarray, groups) -> tuple[np.ndarray, ...]:
                            _index(ffi, cols), _ptr(ffi, vals), _index(ffi, work))
     if nnz < 0:
         raise MemoryError("elements_csr: no memory for the threads' scratch")
+    return indptr, cols[:nnz], vals[:nnz]
+
+
+def csr_drop_zero_blocks(csr) -> tuple[np.ndarray, ...]:
+    """``csr`` = (indptr, cols, vals) of :func:`elements_csr` without its 3 x 3 node blocks of
+    zeros (changed in place; the kept entries in their order)."""
+    ffi, lib = load()
+    indptr, cols, vals = _i64(csr[0]), _i64(csr[1]), _f64(csr[2])
+    N = (len(indptr) - 1) // 3
+    mark = np.empty(max(N, 1), dtype=np.int64)
+    nnz = lib.csr_drop_zero_blocks(N, _index(ffi, indptr), _index(ffi, cols), _ptr(ffi, vals),
+                                   _index(ffi, mark))
     return indptr, cols[:nnz], vals[:nnz]
 
 

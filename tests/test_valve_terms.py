@@ -538,6 +538,30 @@ def test_project_psd_drops_the_negative_spectrum_only(n, invariant):
             kernels.psd_project(bad)
 
 
+@pytest.mark.parametrize("invariant", [False, True])
+def test_project_psd_keeps_left_out_points_out(invariant):
+    """A block whose rows and columns of one point are zero (a node that a contact pair's
+    closest points leave out) projects to the projection of the block without that point,
+    the point's rows and columns exactly zero: compiled (both ways: whole, and through the
+    relative coordinates of a translation-invariant block) and by numpy's ``eigh``."""
+    from mvfem import contact, kernels
+
+    rng = np.random.default_rng(11)
+    K9, want9 = _spectral_blocks(rng, 400, 9, invariant)
+    where = rng.integers(0, 4, 400)            # the point left out
+    keep = np.array([[i for i in range(12) if i // 3 != q] for q in where])
+    K, want = np.zeros((400, 12, 12)), np.zeros((400, 12, 12))
+    for e, idx in enumerate(keep):
+        K[e][np.ix_(idx, idx)] = K9[e]
+        want[e][np.ix_(idx, idx)] = want9[e]
+    if kernels.load() is None:
+        pytest.fail("the contact kernels did not compile (a C compiler is part of make setup)")
+    for got in (contact.project_psd(K.copy()), contact._project_psd(K.copy())):
+        assert np.abs(got - want).max() < 1e-12 * np.abs(K).max()
+        for e, q in enumerate(where):
+            assert not got[e, 3 * q:3 * q + 3].any() and not got[e, :, 3 * q:3 * q + 3].any()
+
+
 def test_contact_convex_blocks_keep_forces_and_are_psd():
     """Sheets 0.25 apart, shifted and perturbed: the exact contact tangent is indefinite (the
     barrier's b'(d) x the distance's curvature), the convexified one (``convex``, set by the
@@ -568,6 +592,122 @@ def test_contact_convex_blocks_keep_forces_and_are_psd():
     assert np.array_equal(convex.force, exact.force)
     c.convex = False
     assert np.array_equal(tangent(c(x)), K)
+
+def test_contact_blocks_leave_out_the_nodes_their_closest_points_leave_out():
+    """Sheets 0.25 apart, shifted: where a node's closest point on a triangle is on an edge or
+    a vertex, the pair's block is exactly zero in the rows and columns of the triangle's other
+    nodes (the distance does not depend on them), and so is the projected block (``convex``);
+    the point terms' CSR rows have no room for those couplings: its node blocks are those of
+    a dense sum that are not zero, with its values."""
+    from types import SimpleNamespace
+
+    from mvfem.contact import Contact, closest_point_on_triangles
+    from mvfem.nodal import PointTerms
+
+    view, x = _two_sheets(0.25, shift=0.37)
+    x = x + np.random.default_rng(5).normal(scale=0.04, size=x.shape)
+    c = Contact(view, 0.5, 1e5, exclusion=0.2)
+    s, t, xi, d = c.active_pairs(x)
+    tri = view.cells[t]
+    _, bary, _ = closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
+    out = bary == 0.0                       # (m, 3): the triangle's nodes left out
+    assert out.any(axis=1).mean() > 0.5     # most pairs: an edge or a vertex is closest
+    for convex in (False, True):
+        c.convex = convex
+        blk = c(x)
+        K = blk.stiffness[:len(s)].reshape(len(s), 4, 3, 4, 3)
+        gone = np.concatenate([np.zeros((len(s), 1), dtype=bool), out], axis=1)
+        rows = np.abs(K).max(axis=(2, 3, 4))
+        assert np.all(rows[gone] == 0.0) and np.all(rows[~gone] > 0.0)
+        # the CSR: the nonzero node blocks of the dense sum, nothing else
+        N = len(x)
+        terms = PointTerms(SimpleNamespace(X=x, free=np.ones((N, 3), dtype=bool)), [])
+        indptr, cols, vals = terms._stiffness_csr([blk])
+        dense = np.zeros((3 * N, 3 * N))
+        for nd, Ke in zip(blk.nodes, blk.stiffness):
+            dofs = (3 * nd[:, None] + np.arange(3)).ravel()
+            dense[np.ix_(dofs, dofs)] += Ke
+        nonzero = np.abs(dense).reshape(N, 3, N, 3).max(axis=(1, 3)) > 0
+        got = np.zeros((3 * N, 3 * N), dtype=bool)
+        got[np.repeat(np.arange(3 * N), np.diff(indptr)), cols] = True
+        assert np.array_equal(got, np.kron(nonzero, np.ones((3, 3), dtype=bool)))
+        csr = np.zeros((3 * N, 3 * N))
+        csr[np.repeat(np.arange(3 * N), np.diff(indptr)), cols] = vals
+        assert np.allclose(csr, dense, rtol=0, atol=1e-13 * np.abs(dense).max())
+        # and a full block pattern would have had room for the left-out couplings
+        full = np.zeros((N, N), dtype=bool)
+        for nd in blk.nodes:
+            full[np.ix_(nd, nd)] = True
+        assert full.sum() > 1.5 * nonzero.sum()
+    c.convex = False
+
+
+def test_point_terms_rows_drop_node_blocks_of_zeros(monkeypatch):
+    """The point terms' CSR rows leave out every 3 x 3 node block that is zero over the free
+    dofs, whatever made it zero (a node's rows and columns zero in its blocks, two blocks that
+    cancel, nonzero entries in fixed dofs only), and keep every other block whole (its zero
+    entries too); compiled and numpy alike, bit for bit, against a dense sum."""
+    from types import SimpleNamespace
+
+    from mvfem import kernels
+    from mvfem.nodal import PointTerms
+
+    rng = np.random.default_rng(7)
+    N = 25
+    free = np.ones((N, 3), dtype=bool)
+    free[4] = False
+    free[6, 1:] = False
+    free[21, 1:] = False
+    nodes = np.array([rng.choice(20, 4, replace=False) for _ in range(60)])
+    K = rng.normal(size=(60, 12, 12))
+    K = K + K.transpose(0, 2, 1)
+    K[::3, 9:, :] = K[::3, :, 9:] = 0.0        # the fourth node left out
+    K[1::3, 3:9, :] = K[1::3, :, 3:9] = 0.0    # the second and third left out
+    K[2, 0, 4] = 0.0                           # a zero inside a nonzero block
+    twin = nodes[:5].copy()                    # blocks that cancel the first five
+    cancel = -K[:5]
+    # node 21 coupled with node 23 through its fixed dofs only; nodes 22 and 24 through
+    # their second dofs only (a block nonzero in one row of three)
+    lone = np.zeros((2, 6, 6))
+    lone[0, 1, 4] = lone[0, 4, 1] = lone[0, 2, 2] = 1.0
+    lone[1, 1, 4] = lone[1, 4, 1] = 1.0
+    blocks = [Blocks(nodes, np.zeros((60, 4, 3)), K),
+              Blocks(twin, np.zeros((5, 4, 3)), cancel),
+              Blocks(np.array([[21, 23], [22, 24]]), np.zeros((2, 2, 3)), lone)]
+    terms = PointTerms(SimpleNamespace(X=np.zeros((N, 3)), free=free), [])
+    dense = np.zeros((3 * N, 3 * N))
+    for blk in blocks:
+        for nd, Ke in zip(blk.nodes, blk.stiffness):
+            dofs = (3 * nd[:, None] + np.arange(3)).ravel()
+            dense[np.ix_(dofs, dofs)] += Ke
+    fd = free.ravel()
+    dense[~fd, :] = 0.0
+    dense[:, ~fd] = 0.0
+    nonzero = np.abs(dense).reshape(N, 3, N, 3).max(axis=(1, 3)) > 0
+    want = np.kron(nonzero, np.ones((3, 3), dtype=bool)) & fd[:, None] & fd[None, :]
+    some = free.any(axis=1)
+    pairs = np.zeros((N, N), dtype=bool)   # what a block's whole pattern would give room for
+    for blk in blocks:
+        for nd in blk.nodes:
+            pairs[np.ix_(nd[some[nd]], nd[some[nd]])] = True
+    assert not nonzero[21, 23] and pairs[21, 23] and nonzero[22, 24] and nonzero[24, 22]
+    assert (pairs & ~nonzero).sum() > 50   # dropped: of left-out nodes, of cancelling blocks
+    if kernels.load() is None:
+        pytest.fail("the contact kernels did not compile (a C compiler is part of make setup)")
+    compiled = terms._stiffness_csr(blocks)
+    for indptr, cols, vals in (compiled,):
+        got = np.zeros((3 * N, 3 * N), dtype=bool)
+        rows = np.repeat(np.arange(3 * N), np.diff(indptr))
+        got[rows, cols] = True
+        assert np.array_equal(got, want)
+        csr = np.zeros((3 * N, 3 * N))
+        csr[rows, cols] = vals
+        assert np.allclose(csr, dense, rtol=0, atol=1e-13 * np.abs(dense).max())
+        assert np.all(np.diff(cols)[np.diff(rows) == 0] > 0)   # columns sorted
+    monkeypatch.setattr(kernels, "load", lambda: None)
+    for a, b in zip(compiled, terms._stiffness_csr(blocks)):
+        assert np.array_equal(a, b)
+
 
 # --- the leak gap and chordae edits -------------------------------------------------------------
 
