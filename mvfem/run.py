@@ -482,7 +482,8 @@ def _nested(scene: Scene, model: Model) -> bool:
 def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
     """Close ``scene`` on its next coarser level and move its closed state onto ``model``
     (mvfem/sequence.py): the mesh refined once less (``mesh.refine``, nested levels), else the
-    mesh of ``solver.coarse_start``. What happened, for summary.json ``coarse_start``."""
+    mesh of ``solver.coarse_start``. What happened, for summary.json ``coarse_start``. The
+    coarser levels get their method's default ``max_steps``, whatever the scene sets."""
     import copy
 
     from mvfem.scene import _make
@@ -521,6 +522,10 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
         raw["mesh"].pop("refine", None)
         what = f"a {hc:g} mm mesh"
         head = {"size_mm": hc}
+    # a coarser level is a start, not the problem the scene poses: its method's own budget,
+    # not the scene's solver.max_steps, which bounds the finest level (the 1 mm hard cases cap
+    # it at 300, and the 2 mm demo level below takes 222-304 steps as roundoff moves its path)
+    raw.get("solver", {}).pop("max_steps", None)
     coarse_scene = _make(raw, scene.source, scene.base_dir)
     t0 = time.perf_counter()
     if comm.rank == 0 and progress:

@@ -11,7 +11,9 @@ Besides the clean ending, what each case must show where the physics says so:
 - the crossing leaflets are refused, or reported as penetrating;
 - the coincident nodes are merged with a warning, or refused;
 - the ruptured marginal chordae lose the coaptation of the healthy demo at this size
-  (coaptation length below the 4 mm valve's, which is about 8 mm).
+  (coaptation length below the 4 mm valve's, which is about 8 mm);
+- the 1 mm valve started from its 2 mm closure (sequenced or nested) converges within the
+  300 steps in which it cannot from the open state: the point of a coarse start.
 """
 
 from __future__ import annotations
@@ -46,6 +48,9 @@ def test_hard_case_ends_cleanly(case, workdir):
             "leaflets that start crossed were neither refused nor reported"
     if case.name == "duplicate-nodes" and o.exit_code != 2:
         assert "merged" in o.stderr
+    if case.name in ("fine-mesh-sequenced", "fine-mesh-nested"):
+        assert o.exit_code == 0 and s.get("coarse_start", {}).get("used"), \
+            f"the coarse start did not close the fine mesh: {o.message}"
     if case.name == "prolapse-no-marginal" and o.exit_code == 0:
         assert s["valve"]["coaptation_length_mm"] < 6.0
     if o.exit_code == 0 and (s.get("max_penetration_mm") or 0) > 0:

@@ -589,6 +589,33 @@ def test_nested_levels_close_a_refined_valve(tmp_path):
     assert s["valve"]["regurgitant_orifice_area_mm2"] == 0.0
 
 
+@pytest.mark.parametrize("changes", [{"mesh.refine": 1}, {"solver.coarse_start": 8.0}])
+def test_coarser_levels_get_their_own_step_budget(monkeypatch, changes):
+    """``solver.max_steps`` bounds the scene's own (finest) level: a coarser level of a nested
+    or sequenced start gets its method's default budget. (With the scene's 300 the 2 mm demo
+    level, 304 steps on one path, stopped short, and the 1 mm hard cases restarted from the
+    open state.) The coarse solve is stubbed: only the scene it is given is looked at."""
+    from types import SimpleNamespace
+
+    import mvfem.run as run
+    from mvfem.model import build_model
+    from mvfem.scene import load_scene
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    scene = scene.with_changes({"mesh.size": 5.0, "solver.max_steps": 300, **changes})
+    seen = []
+
+    def coarse_solve(sc, **kw):
+        seen.append(sc)
+        return SimpleNamespace(converged=False, summary={"newton_iterations": 0, "cells": 1})
+
+    monkeypatch.setattr(run, "solve", coarse_solve)
+    info = run._coarse_start(scene, build_model(scene), MPI.COMM_WORLD, progress=False)
+    assert len(seen) == 1 and not info["used"]
+    assert scene["solver"]["max_steps"] == 300 and seen[0]["solver"]["max_steps"] is None
+    assert seen[0]["solver"]["nested"] == scene["solver"]["nested"]
+
+
 @pytest.mark.parametrize("changes, what", [
     ({"mesh.generator": "disk", "mesh.refine": 1}, "generated valves only"),
     ({"mesh.refine": 5}, "at most 4"),
