@@ -562,6 +562,41 @@ def test_project_psd_keeps_left_out_points_out(invariant):
             assert not got[e, 3 * q:3 * q + 3].any() and not got[e, :, 3 * q:3 * q + 3].any()
 
 
+def test_step_limit_finds_a_crossing_hidden_between_samples():
+    """A recorded update of the 3 mm demo (chained from 5 and 4 mm; ``tests/data``: its
+    nodes, triangles and the state and update, max motion 3.5 mm): the first crossing, an
+    edge through another at 0.0247 of the update, lies in the same sixteenth of it as later
+    roots of the pair's cubic, and the search found 0.0312 (the run converged with the
+    leaflets 0.57 mm through each other). The step limit checks the cut update again: its
+    state has no crossing, and it is 0.8 of the first crossing, found here by bisection on
+    the brute-force crossing count."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from mpi4py import MPI
+
+    from mvfem.contact import Contact
+
+    d = np.load(Path(__file__).parent / "data" / "ccd_3mm_update.npz")
+    view = SimpleNamespace(comm=MPI.COMM_SELF, X=d["X"], cells=d["cells"],
+                           cell_tag=d["cell_tag"], free=d["free"], area=d["area"])
+    x, dx = d["x"], d["dx"]
+    c = Contact(view, float(d["thickness"]), float(d["stiffness"]),
+                exclusion=float(d["exclusion"]), skin=float(d["skin"]))
+    assert c.intersections(x)[1] == 0
+    c.rechecks = 0
+    once = c.step_limit(x, dx)
+    assert c.intersections(x + once * dx)[1] > 0       # the miss, without the second check
+    lo, hi = 0.0, once
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if c.intersections(x + mid * dx)[1] else (mid, hi)
+    c.rechecks = 3
+    alpha = c.step_limit(x, dx)
+    assert c.intersections(x + alpha * dx)[1] == 0
+    assert abs(alpha - 0.8 * hi) < 1e-6 * hi
+
+
 def test_contact_convex_blocks_keep_forces_and_are_psd():
     """Sheets 0.25 apart, shifted and perturbed: the exact contact tangent is indefinite (the
     barrier's b'(d) x the distance's curvature), the convexified one (``convex``, set by the
