@@ -914,8 +914,9 @@ class Contact:
                D: np.ndarray) -> _Lists:
         """``lists`` made valid at ``x`` for ``reach``: the pairs of its nodes, triangles and
         edges none of whose nodes has ``moved`` (by half the lists' radius less ``reach``,
-        :meth:`_lists`; ``D`` the nodes' motion since the lists' positions) are kept, and those of the others searched afresh at ``x`` within
-        ``reach``; sorted as a full search's. A pseudo-time step's trial states move a few
+        :meth:`_lists`; ``D`` the nodes' motion since the lists' positions) are kept, and
+        those of the others searched afresh at ``x`` within ``reach``; sorted as a full
+        search's. A pseudo-time step's trial states move a few
         nodes far (on the demo refined twice, 1 % of them more than 0.05 mm, the farthest
         0.25-1.1 mm): patching their pairs (KD-trees of the moved against all) takes a few
         per cent of a build. The patched lists keep the positions ``lists.x`` and the
@@ -1031,11 +1032,11 @@ class Contact:
         alpha = min(1.0, (1 - keep) * self._first_crossing(x, dx))
         # the first crossing of a pair is where its cubic changes sign on one of 16 equal
         # parts of the update (_first_root): two roots in one part show no change, and with
-        # three the bisection may find a later one. Along a 3.5 mm update of the 3 mm demo an edge crossed another at 0.0247 of it,
-        # found at 0.0312, and the leaflets converged 0.57 mm through each other. Along the
-        # update cut to alpha the roots are 1 / alpha times further apart: it is checked
-        # again, and cut again where that finds a crossing (nothing changes where it does
-        # not)
+        # three the bisection may find a later one. Along a 3.5 mm update of the 3 mm demo
+        # an edge crossed another at 0.0247 of it, found at 0.0312, and the leaflets
+        # converged 0.57 mm through each other. Along the update cut to alpha the roots are
+        # 1 / alpha times further apart: it is checked again, and cut again where that finds
+        # a crossing (nothing changes where it does not)
         for _ in range(self.rechecks):
             if alpha >= 1.0:
                 break
