@@ -730,15 +730,15 @@ def test_point_terms_rows_drop_node_blocks_of_zeros(monkeypatch):
     if kernels.load() is None:
         pytest.fail("the contact kernels did not compile (a C compiler is part of make setup)")
     compiled = terms._stiffness_csr(blocks)
-    for indptr, cols, vals in (compiled,):
-        got = np.zeros((3 * N, 3 * N), dtype=bool)
-        rows = np.repeat(np.arange(3 * N), np.diff(indptr))
-        got[rows, cols] = True
-        assert np.array_equal(got, want)
-        csr = np.zeros((3 * N, 3 * N))
-        csr[rows, cols] = vals
-        assert np.allclose(csr, dense, rtol=0, atol=1e-13 * np.abs(dense).max())
-        assert np.all(np.diff(cols)[np.diff(rows) == 0] > 0)   # columns sorted
+    indptr, cols, vals = compiled
+    got = np.zeros((3 * N, 3 * N), dtype=bool)
+    rows = np.repeat(np.arange(3 * N), np.diff(indptr))
+    got[rows, cols] = True
+    assert np.array_equal(got, want)
+    csr = np.zeros((3 * N, 3 * N))
+    csr[rows, cols] = vals
+    assert np.allclose(csr, dense, rtol=0, atol=1e-13 * np.abs(dense).max())
+    assert np.all(np.diff(cols)[np.diff(rows) == 0] > 0)   # columns sorted
     monkeypatch.setattr(kernels, "load", lambda: None)
     for a, b in zip(compiled, terms._stiffness_csr(blocks)):
         assert np.array_equal(a, b)
