@@ -30,9 +30,13 @@ or an edge through an edge, in one jump. :meth:`Contact.step_limit` scales every
 that nothing passes through anything admissible on the way (continuous collision detection,
 vertex-face and edge-edge, every pair of edges); the pseudo-time steps and SNES's precheck apply
 it, so no state has a leaflet passed through another, and :meth:`Contact.penetration`
-measures it (edges crossing triangles) in the final state. (A conservative bound on the
-closing distance, as in IPC's additive CCD, throttled nodes sliding along the other leaflet;
-a side remembered from the last accepted state reported false crossings.)
+measures it (edges crossing triangles) in the final state. A pair can cross only where its
+coplanarity cubic changes sign; the cubic's critical points split the update into parts on
+which it is monotone, so each root is found alone, however close to another (:func:`_first_root`;
+sign changes on sixteen equal parts, until session 31, missed both roots of a node through a
+triangle and back, and a first root that shared its part with two more). (A conservative
+bound on the closing distance, as in IPC's additive CCD, throttled nodes sliding along the
+other leaflet; a side remembered from the last accepted state reported false crossings.)
 
 The search: Verlet lists. The admissible pairs closer than the thickness plus a skin are found
 once (KD-trees, the exclusion tests) and kept while no node has moved half the skin since:
@@ -432,36 +436,51 @@ def _may_vanish(coef: np.ndarray) -> np.ndarray:
     return (bern.min(axis=1) <= 0) & (bern.max(axis=1) >= 0)
 
 
-def _first_root(coef: np.ndarray, touching, samples: int = 16) -> np.ndarray:
+def _first_root(coef: np.ndarray, touching) -> np.ndarray:
     """Earliest t in [0, 1] per cubic where it changes sign and ``touching(idx, t)`` holds
-    (inf where never): sign changes on ``samples`` sub-intervals, refined by bisection from
-    the left (the t returned is at or just before the root: stopping there is safe). Each
-    round bisects every cubic's next sub-interval with a sign change at once (one or two
-    rounds on the demo, not one per sub-interval: 13 -> 3 ms a call)."""
+    (inf where never). The cubic's critical points split [0, 1] into at most three parts on
+    each of which it is monotone, so a part holds a root only where the cubic changes sign
+    over it, and then one only: every root is found, however close to another (a node through
+    a triangle and back within one update included), by bisection from the left (the t
+    returned is at or just before the root: stopping there is safe). Each round bisects
+    every cubic's next part with a sign change at once."""
     m = len(coef)
     out = np.full(m, np.inf)
+    c = coef
 
-    def f(tt):
-        return coef[:, 0] + tt * (coef[:, 1] + tt * (coef[:, 2] + tt * coef[:, 3]))
+    def f(tt, cc=c):
+        return cc[:, 0] + tt * (cc[:, 1] + tt * (cc[:, 2] + tt * cc[:, 3]))
 
-    grid = np.linspace(0.0, 1.0, samples + 1)
-    vals = np.stack([f(np.full(m, g)) for g in grid], axis=1)   # (m, samples + 1)
-    change = (vals[:, :-1] * vals[:, 1:] <= 0) & (vals[:, :-1] != 0)   # (m, samples)
+    # critical points: the roots of 3 c3 t^2 + 2 c2 t + c1 (the stable quadratic formula;
+    # a linear or constant derivative where c3 or both c3 and c2 vanish)
+    A, B, C = 3.0 * c[:, 3], 2.0 * c[:, 2], c[:, 1]
+    disc = B * B - 4.0 * A * C
+    q = -0.5 * (B + np.copysign(np.sqrt(np.maximum(disc, 0.0)), B))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r1 = np.where(A != 0, q / A, np.nan)
+        r2 = np.where(q != 0, C / q, np.nan)
+    real = disc >= 0
+    crit = np.stack([np.where(real, r1, np.nan), np.where(real, r2, np.nan)], axis=1)
+    crit = np.where((crit > 0) & (crit < 1), crit, 1.0)          # (outside: an empty part)
+    crit.sort(axis=1)
+    ends = np.concatenate([np.zeros((m, 1)), crit, np.ones((m, 1))], axis=1)   # (m, 4)
+    vals = np.stack([f(ends[:, i]) for i in range(4)], axis=1)
+    change = (vals[:, :-1] * vals[:, 1:] <= 0) & (vals[:, :-1] != 0)          # (m, 3)
     rows = np.flatnonzero(change.any(axis=1))
-    start = np.zeros(m, dtype=np.int64)          # sub-intervals before it have been tried
+    start = np.zeros(m, dtype=np.int64)          # parts before it have been tried
     while len(rows):
-        later = change[rows] & (np.arange(samples) >= start[rows, None])
+        later = change[rows] & (np.arange(3) >= start[rows, None])
         has = later.any(axis=1)
         rows = rows[has]
         if not len(rows):
             break
-        k = later[has].argmax(axis=1)            # the next sub-interval with a sign change
-        a, b = grid[k], grid[k + 1]
+        k = later[has].argmax(axis=1)            # the next part with a sign change
+        a, b = ends[rows, k], ends[rows, k + 1]
         fa = vals[rows, k]
-        c = coef[rows]
-        for _ in range(40):
+        cr = c[rows]
+        for _ in range(50):
             mid = 0.5 * (a + b)
-            fm = c[:, 0] + mid * (c[:, 1] + mid * (c[:, 2] + mid * c[:, 3]))
+            fm = f(mid, cr)
             left = fa * fm <= 0
             b = np.where(left, mid, b)
             a = np.where(left, a, mid)
@@ -623,7 +642,6 @@ class Contact:
         #: (x, reach, lists) of the last patch
         self._patched: tuple | None = None
         #: how often a cut update is checked again for a crossing (:meth:`step_limit`)
-        self.rechecks = 3
         min_edge, median_edge = 0.0, np.inf
         if view.comm.rank == 0:
             self.slaves = np.flatnonzero(view.free.any(axis=1))
@@ -1029,22 +1047,7 @@ class Contact:
         """
         if len(self.slaves) == 0 or not np.any(dx):
             return 1.0
-        alpha = min(1.0, (1 - keep) * self._first_crossing(x, dx))
-        # the first crossing of a pair is where its cubic changes sign on one of 16 equal
-        # parts of the update (_first_root): two roots in one part show no change, and with
-        # three the bisection may find a later one. Along a 3.5 mm update of the 3 mm demo
-        # an edge crossed another at 0.0247 of it, found at 0.0312, and the leaflets
-        # converged 0.57 mm through each other. Along the update cut to alpha the roots are
-        # 1 / alpha times further apart: it is checked again, and cut again where that finds
-        # a crossing (nothing changes where it does not)
-        for _ in range(self.rechecks):
-            if alpha >= 1.0:
-                break
-            again = self._first_crossing(x, alpha * dx)
-            if again > 1.0:
-                break
-            alpha *= (1 - keep) * again
-        return alpha
+        return min(1.0, (1 - keep) * self._first_crossing(x, dx))
 
     def _first_crossing(self, x: np.ndarray, dx: np.ndarray) -> float:
         """The first crossing of a node and a triangle or of two edges along ``dx`` (a

@@ -566,10 +566,11 @@ def test_step_limit_finds_a_crossing_hidden_between_samples():
     """A recorded update of the 3 mm demo (chained from 5 and 4 mm; ``tests/data``: its
     nodes, triangles and the state and update, max motion 3.5 mm): the first crossing, an
     edge through another at 0.0247 of the update, lies in the same sixteenth of it as later
-    roots of the pair's cubic, and the search found 0.0312 (the run converged with the
-    leaflets 0.57 mm through each other). The step limit checks the cut update again: its
-    state has no crossing, and it is 0.8 of the first crossing, found here by bisection on
-    the brute-force crossing count."""
+    roots of the pair's cubic. A search for sign changes on sixteen equal parts found
+    0.0312, and the run converged with the leaflets 0.57 mm through each other. The step
+    limit is 0.8 of the first crossing, found here on the brute-force crossing count (the
+    first of 400 samples of the update's first tenth with a crossing, then bisection), and
+    its state has none."""
     from pathlib import Path
     from types import SimpleNamespace
 
@@ -584,17 +585,50 @@ def test_step_limit_finds_a_crossing_hidden_between_samples():
     c = Contact(view, float(d["thickness"]), float(d["stiffness"]),
                 exclusion=float(d["exclusion"]), skin=float(d["skin"]))
     assert c.intersections(x)[1] == 0
-    c.rechecks = 0
-    once = c.step_limit(x, dx)
-    assert c.intersections(x + once * dx)[1] > 0       # the miss, without the second check
-    lo, hi = 0.0, once
-    for _ in range(60):
+    ts = np.linspace(0.0, 0.1, 401)
+    first = next(i for i, t in enumerate(ts) if c.intersections(x + t * dx)[1])
+    lo, hi = ts[first - 1], ts[first]
+    for _ in range(50):
         mid = 0.5 * (lo + hi)
         lo, hi = (lo, mid) if c.intersections(x + mid * dx)[1] else (mid, hi)
-    c.rechecks = 3
+    assert 0.024 < hi < 0.025
     alpha = c.step_limit(x, dx)
     assert c.intersections(x + alpha * dx)[1] == 0
     assert abs(alpha - 0.8 * hi) < 1e-6 * hi
+
+
+def test_step_limit_stops_a_node_through_a_triangle_and_back():
+    """A triangle tilting about x = 0 (its vertices rising by ``kappa x t``) under a node
+    0.3 mm above it that slides towards the axis (``x = a + v t``): the triangle's height
+    under the node, ``kappa t (a + v t)``, rises above the node and falls back below it
+    between ``ts -+ delta`` (0.51125 and 0.55125, one sixteenth of the update: the search
+    before session 31 took the update whole). The step limit stops it at 0.8 x 0.51125, the
+    first time the brute-force crossing count (the node's edges through the triangle) sees
+    a crossing on a grid of 20,001 points."""
+    from types import SimpleNamespace
+
+    from mpi4py import MPI
+
+    from mvfem.contact import Contact
+
+    ts, delta, z0, a = 0.53125, 0.02, 0.3, 1.0
+    v = -a / (2 * ts)                          # the hump of the height at ts
+    kappa = z0 / (a * ts / 2 - (-v) * delta**2)
+    pts = np.array([[-2, -2, 0], [2, -2, 0], [0, 2.5, 0],
+                    [a, 0, z0], [a, -0.5, 5], [a, 0.5, 5]], float)
+    cells = np.array([[0, 1, 2], [3, 4, 5]])
+    view = SimpleNamespace(comm=MPI.COMM_SELF, X=pts, cells=cells, cell_tag=np.array([1, 2]),
+                           free=np.ones((6, 3), dtype=bool),
+                           area=np.bincount(cells.ravel(), np.ones(6), 6))
+    c = Contact(view, 0.1, 1e5, exclusion=0.2)
+    dx = np.zeros_like(pts)
+    dx[:3, 2] = kappa * pts[:3, 0]
+    dx[3, 0] = v
+    t = np.linspace(0, 1, 20001)
+    crossed = t[[c.intersections(pts + s * dx)[1] > 0 for s in t]]
+    assert crossed.min() == pytest.approx(ts - delta, abs=1e-4)
+    assert crossed.max() == pytest.approx(ts + delta, abs=1e-4)
+    assert c.step_limit(pts, dx) == pytest.approx(0.8 * (ts - delta), rel=1e-9)
 
 
 def test_contact_convex_blocks_keep_forces_and_are_psd():
@@ -1596,48 +1630,49 @@ def test_step_limit_finds_a_still_node_met_by_a_fast_triangle():
     assert cached.list_builds == 1
 
 
-def test_first_root_takes_the_sub_intervals_in_order():
-    """The batched root search gives each cubic the root of its first sub-interval with a
-    sign change where ``touching`` holds, as trying the sub-intervals one at a time does
-    (cubics with three roots in [0, 1]; touching refused at some roots)."""
+def test_first_root_finds_every_root_in_order():
+    """The batched root search gives each cubic its earliest root in [0, 1] where it changes
+    sign and ``touching`` holds: against the real roots from ``numpy.roots`` (the
+    eigenvalues of the companion matrix), tried in order. The cubics have three roots in
+    [0, 1], some of them two within 1e-3 (a node through a triangle and back within one
+    sixteenth of an update), or fewer (complex pairs, roots beyond [0, 1]), or are
+    quadratics and lines; touching is refused before a random t. (Sign changes on sixteen
+    equal parts, the search before session 31, miss both roots of a close pair.)"""
     from mvfem.contact import _first_root
 
     rng = np.random.default_rng(5)
-    m, samples = 400, 16
+    m = 1200
     roots = np.sort(rng.uniform(0, 1, (m, 3)), axis=1)
+    close = rng.uniform(size=m) < 0.3                  # the middle root just after the first
+    roots[close, 1] = roots[close, 0] + rng.uniform(1e-6, 1e-3, close.sum())
+    roots.sort(axis=1)
     coef = np.stack([-roots.prod(axis=1), roots[:, 0] * roots[:, 1] + roots[:, 1] * roots[:, 2]
                      + roots[:, 0] * roots[:, 2], -roots.sum(axis=1), np.ones(m)], axis=1)
-    coef *= rng.choice([-1.0, 1.0], m)[:, None]
-    lo = rng.uniform(0, 1, m)                   # touching only from this t on
+    coef *= rng.choice([-1.0, 1.0], m)[:, None] * 10.0 ** rng.uniform(-6, 3, m)[:, None]
+    rand = rng.normal(size=(200, 4))                   # complex pairs, roots outside [0, 1]
+    rand[:40, 3] = 0.0                                 # quadratics
+    rand[40:60, 2:] = 0.0                              # lines
+    coef = np.concatenate([coef, rand])
+    lo = rng.uniform(0, 1, len(coef))                  # touching only from this t on
 
     def touching(idx, t):
         return t >= lo[idx]
 
-    got = _first_root(coef, touching, samples)
-    grid = np.linspace(0.0, 1.0, samples + 1)
-    want = np.full(m, np.inf)
-    for r in range(m):
-        def f(t, c=coef[r]):
-            return c[0] + t * (c[1] + t * (c[2] + t * c[3]))
-
-        for i in range(samples):
-            fa, fb = f(grid[i]), f(grid[i + 1])
-            if not (fa * fb <= 0 and fa != 0):
-                continue
-            a, b = grid[i], grid[i + 1]
-            for _ in range(40):
-                mid = 0.5 * (a + b)
-                fm = f(mid)
-                if fa * fm <= 0:
-                    b = mid
-                else:
-                    a, fa = mid, fm
-            if a >= lo[r]:
-                want[r] = a
+    got = _first_root(coef, touching)
+    want = np.full(len(coef), np.inf)
+    for r, c in enumerate(coef):
+        z = np.roots(c[::-1])
+        real = np.sort(z[np.abs(z.imag) <= 1e-9 * np.maximum(1.0, np.abs(z))].real)
+        for t in real:
+            if 0 < t <= 1 and t >= lo[r] + 1e-9:
+                want[r] = t
                 break
-    assert np.array_equal(got, want)
-    assert np.isfinite(got).sum() > 100 and np.isinf(got).sum() > 20
-
+    fin = np.isfinite(want)
+    assert np.array_equal(np.isfinite(got), fin)
+    # (numpy's roots of two close ones are good to ~1e-10 only)
+    assert np.abs(got[fin] - want[fin]).max() < 1e-8
+    assert fin.sum() > 600 and (~fin).sum() > 100
+    assert np.isfinite(got[:m][close & (lo[:m] < roots[:, 0])]).all()
 
 def test_admissible_edges_look_up_is_the_definition(valve_view):
     """The look-up of excluded edge pairs gives, over every pair of the valve's edges, what
