@@ -318,9 +318,9 @@ def edge_edge_hessian(y, weight, eps_x, delta: float, rel: float = 1e-4,
 def _fast_triangle_distance(x: np.ndarray, cells: np.ndarray, s: np.ndarray,
                             t: np.ndarray) -> np.ndarray:
     """Distances of the nodes ``x[s]`` to the triangles ``cells[t]``: compiled
-    (:mod:`mvfem.kernels`) where a C compiler is available, else numpy. Within roundoff of
-    :func:`closest_point_on_triangles`, not bit for bit: a prefilter of candidate pairs, whose
-    survivors get the numpy distance."""
+    (:mod:`mvfem.kernels`) where a C compiler is available, else numpy: the candidates'
+    prefilter (the survivors' distances and closest points from :func:`_triangle_closest`,
+    computed alike)."""
     from mvfem import kernels
 
     if kernels.load() is None or len(s) == 0:
@@ -329,10 +329,24 @@ def _fast_triangle_distance(x: np.ndarray, cells: np.ndarray, s: np.ndarray,
     return kernels.point_triangle_distance(x, cells, s, t)
 
 
+def _triangle_closest(x: np.ndarray, cells: np.ndarray, s: np.ndarray,
+                      t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distances of the nodes ``x[s]`` to the triangles ``cells[t]`` and the closest points'
+    barycentric coordinates: compiled where a C compiler is available, else numpy
+    (:func:`closest_point_on_triangles`)."""
+    from mvfem import kernels
+
+    if kernels.load() is None or len(s) == 0:
+        tri = cells[t]
+        d, bary, _ = closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
+        return d, bary
+    return kernels.point_triangle_distance(x, cells, s, t, bary=True)
+
+
 def _fast_segment_distance(x: np.ndarray, edges: np.ndarray, i: np.ndarray,
                            j: np.ndarray) -> np.ndarray:
-    """Distances of the segments ``edges[i]`` and ``edges[j]``: compiled or numpy, a
-    prefilter as :func:`_fast_triangle_distance`."""
+    """Distances of the segments ``edges[i]`` and ``edges[j]``: compiled or numpy (the
+    candidates' prefilter, and the pairs' distances)."""
     from mvfem import kernels
 
     if kernels.load() is None or len(i) == 0:
@@ -799,10 +813,9 @@ class Contact:
         else:
             near = self._list_distances(x, lists, within)[0] < within + self._margin
             s, t = lists.s[near], lists.t[near]
-        # the exact (numpy) distances of the few left: the same values, whatever the search
-        tri = cells[t]
-        dist, bary, _ = closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]],
-                                                   x[tri[:, 2]])
+        # the distances and closest points of the few left, computed alike whatever the
+        # search: the same values
+        dist, bary = _triangle_closest(x, cells, s, t)
         near = dist < within
         return s[near], t[near], bary[near], dist[near]
 
@@ -857,7 +870,7 @@ class Contact:
         else:
             near = self._list_distances(x, lists, within)[1] < within + self._margin
             i, j = lists.i[near], lists.j[near]
-        d = segment_distance(x[e[i, 0]], x[e[i, 1]], x[e[j, 0]], x[e[j, 1]])
+        d = _fast_segment_distance(x, e, i, j)
         near = d < within
         return i[near], j[near], d[near]
 
@@ -1019,7 +1032,7 @@ class Contact:
 
     def _edge_energy_args(self, x, i, j):
         e = self._edges
-        y = np.concatenate([x[e[i]], x[e[j]]], axis=1).reshape(len(i), 12)
+        y = x[np.concatenate([e[i], e[j]], axis=1)].reshape(len(i), 12)   # (one gather)
         la, lb = self._edge_len_ref[i], self._edge_len_ref[j]
         return y, 0.25 * self.stiffness * la * lb, 1e-3 * la**2 * lb**2
 

@@ -49,7 +49,7 @@ void ee_energy(long m, const double *y, const double *w, const double *eps, doub
 void ee_hess(long m, const double *y, const double *w, const double *eps, double delta,
              double *H);
 void pt_dist(long m, const double *x, const int64_t *cells, const int64_t *s, const int64_t *t,
-             double *d);
+             double *d, double *bary);
 void ee_dist(long m, const double *x, const int64_t *edges, const int64_t *i, const int64_t *j,
              double *d);
 void pt_dist_cut(long m, const double *x, const int64_t *cells, const int64_t *s,
@@ -469,14 +469,16 @@ void ee_hess(long m, const double *y, const double *w, const double *eps, double
 
 /* distances of nodes x[s[k]] to triangles cells[t[k]] (positions x (n, 3), cells (c, 3)):
    the narrow phase of the candidate lists, reading the positions through the indices (a numpy
-   gather of the pairs' coordinates cost as much as the distances) */
+   gather of the pairs' coordinates cost as much as the distances); the closest points'
+   barycentric coordinates into bary (m, 3) unless it is NULL */
 void pt_dist(long m, const double *x, const int64_t *cells, const int64_t *s, const int64_t *t,
-             double *d) {
+             double *d, double *bary) {
   PAR
   for (long k = 0; k < m; k++) {
-    double bary[3];
+    double b[3];
     const int64_t *c = cells + 3 * t[k];
-    d[k] = closest_tri(x + 3 * s[k], x + 3 * c[0], x + 3 * c[1], x + 3 * c[2], bary);
+    d[k] = closest_tri(x + 3 * s[k], x + 3 * c[0], x + 3 * c[1], x + 3 * c[2], b);
+    if (bary) for (int i = 0; i < 3; i++) bary[3 * k + i] = b[i];
   }
 }
 
@@ -1222,15 +1224,17 @@ def _index(ffi, a: np.ndarray):
 
 
 def point_triangle_distance(x: np.ndarray, cells: np.ndarray, s: np.ndarray,
-                            t: np.ndarray) -> np.ndarray:
+                            t: np.ndarray, bary: bool = False):
     """(m,) distances of the nodes ``x[s]`` to the triangles ``cells[t]`` ((c, 3) node
-    indices) at positions ``x`` (n, 3)."""
+    indices) at positions ``x`` (n, 3); with ``bary`` also the closest points' barycentric
+    coordinates (m, 3), as :func:`mvfem.contact.closest_point_on_triangles` gives them."""
     ffi, lib = load()
     x, cells, s, t = _f64(x), _i64(cells), _i64(s), _i64(t)
     d = np.empty(len(s))
+    b = np.empty((len(s), 3)) if bary else None
     lib.pt_dist(len(s), _ptr(ffi, x), _index(ffi, cells), _index(ffi, s), _index(ffi, t),
-                _ptr(ffi, d))
-    return d
+                _ptr(ffi, d), _ptr(ffi, b) if bary else ffi.NULL)
+    return (d, b) if bary else d
 
 
 def segment_distance(x: np.ndarray, edges: np.ndarray, i: np.ndarray,

@@ -1133,8 +1133,14 @@ def test_compiled_contact_kernels_match_numpy():
     s, t = rng.integers(0, 50, m), rng.integers(0, 30, m)
     d = kernels.point_triangle_distance(x, cells, s, t)
     tri = cells[t]
-    assert np.allclose(d, closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]],
-                                                     x[tri[:, 2]])[0], rtol=1e-13, atol=1e-14)
+    want, bary, inside = closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]],
+                                                    x[tri[:, 2]])
+    assert np.allclose(d, want, rtol=1e-13, atol=1e-14)
+    # with the closest points (the contact pairs' values): face, edge and vertex regions
+    d2, b2 = kernels.point_triangle_distance(x, cells, s, t, bary=True)
+    assert np.array_equal(d2, d) and np.allclose(b2, bary, rtol=0, atol=1e-13)
+    assert inside.sum() > 10 and (~inside & (bary == 0).sum(axis=1) == 1).sum() > 10 \
+        and (bary == 1).any(axis=1).sum() > 10
     edges = cells[:, :2]
     i, j = rng.integers(0, 30, m), rng.integers(0, 30, m)
     d = kernels.segment_distance(x, edges, i, j)
@@ -1221,6 +1227,7 @@ def test_kernel_threads_give_the_results_of_one():
                *kernels.edge_edge_energy(ye, w, eps, 0.5),
                kernels.edge_edge_hessian(ye, w, eps, 0.5),
                kernels.point_triangle_distance(x, cells, s, t),
+               *kernels.point_triangle_distance(x, cells, s, t, bary=True),
                kernels.segment_distance(x, edges, s, t),
                kernels.point_triangle_distance_cut(x, cells, s, t, lb, D, 1.5,
                                                    np.full(m, np.inf)),
