@@ -655,7 +655,6 @@ class Contact:
         self.list_patches = 0
         #: (x, reach, lists) of the last patch
         self._patched: tuple | None = None
-        #: how often a cut update is checked again for a crossing (:meth:`step_limit`)
         min_edge, median_edge = 0.0, np.inf
         if view.comm.rank == 0:
             self.slaves = np.flatnonzero(view.free.any(axis=1))

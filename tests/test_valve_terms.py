@@ -1681,6 +1681,7 @@ def test_first_root_finds_every_root_in_order():
     assert fin.sum() > 600 and (~fin).sum() > 100
     assert np.isfinite(got[:m][close & (lo[:m] < roots[:, 0])]).all()
 
+
 def test_admissible_edges_look_up_is_the_definition(valve_view):
     """The look-up of excluded edge pairs gives, over every pair of the valve's edges, what
     the definition does: a shared vertex or reference midpoints within ``exclusion``."""
