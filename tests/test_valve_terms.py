@@ -1978,18 +1978,22 @@ def test_transfer_between_models_on_any_number_of_ranks():
     assert err < 1e-12 and clamped > 0
 
 
-def test_tangent_makes_room_for_new_point_couplings():
+@pytest.mark.parametrize("compiled", [True, False])
+def test_tangent_makes_room_for_new_point_couplings(compiled, monkeypatch):
     """The tangent of a problem with point terms that couple dofs outside the forms' pattern
     is preallocated anew (SNESProblem._make_room) instead of grown by PETSc a row at a time:
     no mallocs, one re-preallocation per new pattern and none for a pattern seen before, and
     the matrix the forms' tangent plus the blocks' free entries, against a dense sum (entries
-    of pairs that have parted are zeros)."""
+    of pairs that have parted are zeros). The pattern is the forms' (a fresh matrix of the
+    forms) and every coupling of the blocks so far; compiled, and with the numpy fallback
+    (no compiled check of missing entries)."""
     from pathlib import Path
 
     from dolfinx import fem
     from dolfinx.fem import petsc as fpetsc
     from mpi4py import MPI
 
+    from mvfem import kernels
     from mvfem.model import build_model
     from mvfem.scene import load_scene
     from mvfem.solver import SNESProblem
@@ -1997,6 +2001,8 @@ def test_tangent_makes_room_for_new_point_couplings():
     scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
     m = build_model(scene.with_changes({"mesh.size": 5.0}), MPI.COMM_SELF)
     m.pressure.value = m.p_target
+    if not compiled:
+        monkeypatch.setattr(kernels, "load", lambda: None)
     view = m.point_terms.view
     N = len(view.X)
     rng = np.random.default_rng(5)
@@ -2023,16 +2029,44 @@ def test_tangent_makes_room_for_new_point_couplings():
             ref[np.ix_(dofs[ok], dofs[ok])] += K[np.ix_(ok, ok)]
         return ref
 
+    def structure(A):
+        ai, aj, _ = A.getValuesCSR()
+        out = np.zeros(A.getSize(), dtype=bool)
+        out[np.repeat(np.arange(len(ai) - 1), np.diff(ai)), aj] = True
+        return out
+
+    fresh = pb.forms_matrix()              # the forms' tangent in a matrix of their own
+    fpetsc.assemble_matrix(fresh, pb.a, bcs=m.bcs)
+    fresh.assemble()
+    forms_pattern = structure(fresh)
+    fresh.destroy()
+    first, second = current[0], blocks()[0]
+    fewer = Blocks(second.nodes[:20], second.force[:20], second.stiffness[:20])
+
+    def couplings(*blks):
+        out = forms_pattern.copy()
+        for blk in blks:
+            for nd in blk.nodes:
+                dofs = (3 * nd[:, None] + np.arange(3)).ravel()
+                dofs = dofs[free[dofs]]
+                out[np.ix_(dofs, dofs)] = True
+        return out
+
     try:
-        for step, (new, regrowths) in enumerate([(False, 1), (False, 1), (True, 2)]):
-            if new:
-                current[:] = blocks()
+        # the blocks, the re-preallocations so far, the blocks whose couplings the pattern
+        # holds besides the forms'
+        for step, (blk, regrowths, held) in enumerate(
+                [(first, 1, [first]), (first, 1, [first]), (second, 2, [first, second]),
+                 (fewer, 2, [first, second]), (first, 2, [first, second])]):
+            current[:] = [blk]
             pb._jacobian(pb.snes, pb.x, pb.A, pb.A)
             assert pb.A.getInfo()["mallocs"] == 0, step
             assert pb.regrowths == regrowths, step
             got = _dense(pb.A)
             ref = expected()
             assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max()), step
+            assert np.array_equal(structure(pb.A), couplings(*held)), step
+        assert (couplings(second) & ~couplings(first)).any()
     finally:
         pb.destroy()
         forms.destroy()
