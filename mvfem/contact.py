@@ -316,31 +316,18 @@ def edge_edge_hessian(y, weight, eps_x, delta: float, rel: float = 1e-4,
 
 
 def _fast_triangle_distance(x: np.ndarray, cells: np.ndarray, s: np.ndarray,
-                            t: np.ndarray) -> np.ndarray:
-    """Distances of the nodes ``x[s]`` to the triangles ``cells[t]``: compiled
-    (:mod:`mvfem.kernels`) where a C compiler is available, else numpy: the candidates'
-    prefilter (the survivors' distances and closest points from :func:`_triangle_closest`,
-    computed alike)."""
+                            t: np.ndarray, bary: bool = False):
+    """Distances of the nodes ``x[s]`` to the triangles ``cells[t]``, with ``bary`` also the
+    closest points' barycentric coordinates: compiled (:mod:`mvfem.kernels`) where a C
+    compiler is available, else numpy (:func:`closest_point_on_triangles`). The candidates'
+    prefilter and the pairs' values alike, so the same whatever the search."""
     from mvfem import kernels
 
     if kernels.load() is None or len(s) == 0:
         tri = cells[t]
-        return closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])[0]
-    return kernels.point_triangle_distance(x, cells, s, t)
-
-
-def _triangle_closest(x: np.ndarray, cells: np.ndarray, s: np.ndarray,
-                      t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distances of the nodes ``x[s]`` to the triangles ``cells[t]`` and the closest points'
-    barycentric coordinates: compiled where a C compiler is available, else numpy
-    (:func:`closest_point_on_triangles`)."""
-    from mvfem import kernels
-
-    if kernels.load() is None or len(s) == 0:
-        tri = cells[t]
-        d, bary, _ = closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
-        return d, bary
-    return kernels.point_triangle_distance(x, cells, s, t, bary=True)
+        d, xi, _ = closest_point_on_triangles(x[s], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
+        return (d, xi) if bary else d
+    return kernels.point_triangle_distance(x, cells, s, t, bary=bary)
 
 
 def _fast_segment_distance(x: np.ndarray, edges: np.ndarray, i: np.ndarray,
@@ -814,7 +801,7 @@ class Contact:
             s, t = lists.s[near], lists.t[near]
         # the distances and closest points of the few left, computed alike whatever the
         # search: the same values
-        dist, bary = _triangle_closest(x, cells, s, t)
+        dist, bary = _fast_triangle_distance(x, cells, s, t, bary=True)
         near = dist < within
         return s[near], t[near], bary[near], dist[near]
 
@@ -865,11 +852,11 @@ class Contact:
             return empty
         lists = self._lists(x, within)
         if lists is None:
-            i, j, _ = self._edge_candidates(x, within)
-        else:
-            near = self._list_distances(x, lists, within)[1] < within + self._margin
-            i, j = lists.i[near], lists.j[near]
-        d = _fast_segment_distance(x, e, i, j)
+            i, j, d = self._edge_candidates(x, within)
+        else:   # (the distances at x, from the routine the full search uses)
+            d = self._list_distances(x, lists, within)[1]
+            near = d < within + self._margin
+            i, j, d = lists.i[near], lists.j[near], d[near]
         near = d < within
         return i[near], j[near], d[near]
 
