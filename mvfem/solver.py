@@ -136,6 +136,7 @@ class SNESProblem:
         self._prox_w: PETSc.Vec | None = None
         self._prox_c: PETSc.Vec | None = None
         self._work = self.x.duplicate()
+        self._diagonal: PETSc.Vec | None = None  # the unshifted tangent's (evaluate_tangent)
 
         self.snes = PETSc.SNES().create(self.comm)
         self.prefix = prefix
@@ -395,14 +396,38 @@ class SNESProblem:
     def evaluate_tangent(self, x: PETSc.Vec, shift: float, symmetric: bool = False) -> None:
         """Tangent at ``x`` plus ``shift`` x the proximal weights on the diagonal, into
         ``self.A``; with ``symmetric``, the load's part replaced by its symmetric part (see
-        :meth:`symmetric_solver`)."""
+        :meth:`symmetric_solver`). Its unshifted diagonal is kept for :meth:`shift_tangent`."""
         k = self._prox_k
-        self._prox_k = float(shift)
+        self._prox_k = 0.0
         try:
             self._jacobian(self.snes, x, self.A, self.A,
                            form=self._symmetric_form() if symmetric else None)
         finally:
             self._prox_k = k
+        t0 = time.perf_counter()
+        self._diagonal = self.A.getDiagonal(self._diagonal)
+        self.assembly_s += time.perf_counter() - t0
+        self.shift_tangent(shift)
+
+    def shift_tangent(self, shift: float) -> None:
+        """``self.A`` = the last :meth:`evaluate_tangent`'s tangent plus ``shift`` x the
+        proximal weights on the diagonal, bit for bit what that call gives with ``shift``
+        (the same sums, entry by entry): for a pseudo-time step refused at the same state,
+        whose tangent differs only in the weight ``k``: a fresh evaluation costs the forms,
+        the point terms' blocks and rows, and the residual at the state again, 0.2 s a
+        refusal on the twice-refined demo's finest level (README, "Nested levels")."""
+        t0 = time.perf_counter()
+        if self._diagonal is None:
+            raise RuntimeError("shift_tangent before evaluate_tangent")
+        if shift > 0:
+            self._prox_w.copy(self._work)
+            self._work.scale(float(shift))
+            self._work.axpy(1.0, self._diagonal)
+        else:
+            self._diagonal.copy(self._work)
+        self.A.setDiagonal(self._work, addv=PETSc.InsertMode.INSERT_VALUES)
+        self.A.assemble()
+        self.assembly_s += time.perf_counter() - t0
 
     def _symmetric_form(self):
         """The compiled tangent whose ``load`` part is symmetrised:
@@ -461,7 +486,8 @@ class SNESProblem:
     def destroy(self) -> None:
         """Free the PETSc objects and this problem's prefixed options: PETSc's options
         table is finite (a test session of 300 solves filled it: error 55 setting one)."""
-        for obj in (self.snes, self.A, self.b, self.x, self._work, self._pv, self._ksp_sym):
+        for obj in (self.snes, self.A, self.b, self.x, self._work, self._pv, self._ksp_sym,
+                    self._diagonal):
             if obj is not None:
                 obj.destroy()
         opts = PETSc.Options(self.prefix)
@@ -587,11 +613,12 @@ class PseudoTransient:
     ||F_{n+1}|| / ||F_n||`` (the ratio clipped to ``[1/max_growth, 1/min_growth]``, so ``dt``
     grows at least ``min_growth``-fold after every accepted step); a step whose residual is not
     finite (the exponential laws overflowed) or grew more than ``reject``-fold is refused and
-    ``k`` multiplied by ``shrink``. Once ``k`` has fallen below its start ``k0`` (Newton's
-    regime), every later update must lower the merit (the potential where the problem has
-    one, which then judges alone: no refusal for the residual's growth, see
-    ``reject_descending``; else the residual), after up to ``backtracks`` halvings, or it is
-    refused: the end game cannot cycle. After ``restart_after`` refusals in a row there
+    ``k`` multiplied by ``shrink`` (the next update, from the same state, keeps the tangent
+    and shifts its diagonal to the new ``k``: :meth:`SNESProblem.shift_tangent`). Once ``k``
+    has fallen below its start ``k0`` (Newton's regime), every later update must lower the
+    merit (the potential where the problem has one, which then judges alone: no refusal for
+    the residual's growth, see ``reject_descending``; else the residual), after up to
+    ``backtracks`` halvings, or it is refused: the end game cannot cycle. After ``restart_after`` refusals in a row there
     (the residual is only piecewise smooth where contact pairs change from face to edge), the
     run moves in pseudo-time again from the current state with ``k = restart_weight k0``, at
     most ``restarts`` times. As ``k -> 0`` the steps become Newton's, and the iteration
@@ -713,10 +740,21 @@ class PseudoTransient:
             sym_ksp = pb.symmetric_solver() if self.symmetric else None
             k_sym = self.k0 if self.symmetric_above is None else self.symmetric_above
 
-            def newton_update(symmetric: bool = False) -> PETSc.KSP:
+            # the tangent in pb.A is that at x, with the load part symmetrised (True) or not
+            # (False), and exact point terms: a refused update's next one needs only its
+            # diagonal shifted to the new k (None: evaluate it)
+            held = None
+
+            def newton_update(symmetric: bool = False, convex: bool = False) -> PETSc.KSP:
                 """``du = -(K(x) + k M)^-1 F(x)``, with ``F(x)`` in ``rhs`` (``K``'s load
-                part symmetrised with ``symmetric``); the solver that solved it."""
-                pb.evaluate_tangent(x, k, symmetric=symmetric)
+                part symmetrised with ``symmetric``; ``convex``: with the point terms'
+                blocks projected); the solver that solved it."""
+                nonlocal held
+                if held is not None and held == symmetric and not convex:
+                    pb.shift_tangent(k)
+                else:
+                    pb.evaluate_tangent(x, k, symmetric=symmetric)
+                    held = None if convex else symmetric
                 t0 = time.perf_counter()
                 solver = sym_ksp if symmetric else ksp
                 solver.setOperators(pb.A)
@@ -749,12 +787,12 @@ class PseudoTransient:
                     pb.u.vector.copy(x)  # the state, moved by the ramp or not
                     ramped = bool(done) or its >= max(self.ramp_steps, 1)
                     r = pb.evaluate_residual(x)  # the Dirichlet rows now hold x - g
-                    E = None
+                    E, held = None, None
                 pb.b.copy(rhs)  # F(x), still in b from the last evaluation at x
                 early = bool(self.convexify_early and pb.point_terms and not monotone
                              and k >= self.k0 and pb.point_terms.convexify(True))
                 try:
-                    solver = newton_update(sym_ksp is not None and k >= k_sym)
+                    solver = newton_update(sym_ksp is not None and k >= k_sym, convex=early)
                 finally:
                     if early:
                         pb.point_terms.convexify(False)
@@ -768,7 +806,7 @@ class PseudoTransient:
                     # converge faster where they do descend (IPC projects always: the demo
                     # took 292 steps, not 255)
                     try:
-                        solver = newton_update()
+                        solver = newton_update(convex=True)
                         self.convexified += 1
                         log.debug(f"    convexified tangent at residual {r:.3g}")
                     finally:
@@ -837,7 +875,8 @@ class PseudoTransient:
                 if not ok:
                     k *= self.shrink
                     in_a_row += 1
-                    pb.evaluate_residual(x)  # b holds F(x) again
+                    rhs.copy(pb.b)  # b holds F(x) again (rhs is F(x), not changed by the solve)
+                    pb._update_u(x)
                     continue
                 in_a_row = 0
                 ratio = min(max(r / r_new, 1.0 / self.max_growth), self.max_growth)
@@ -846,7 +885,7 @@ class PseudoTransient:
                 # when it rose let the demo crawl (no convergence in 1500 steps, README)
                 k = max(min(k / ratio, k / self.min_growth), self.k_min * self.k0)
                 trial.copy(x)
-                r, E = r_new, E_new
+                r, E, held = r_new, E_new, None
             converged = r <= self.atol
             return SolveInfo(converged, its, "CONVERGED_PSEUDO_TIME" if converged
                              else "DIVERGED_PSEUDO_TIME", r)

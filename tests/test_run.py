@@ -461,6 +461,112 @@ def test_symmetric_tangent_is_the_tangents_symmetric_part(comm):
         pb.destroy()
 
 
+@pytest.mark.mpi
+def test_shifted_tangent_is_the_tangent_at_another_weight(comm):
+    """``SNESProblem.shift_tangent(k2)`` after ``evaluate_tangent(x, k1)`` is, entry for entry,
+    the matrix of SNES's Jacobian with the proximal weight ``k2`` (``_jacobian``, which adds
+    ``k2 W`` to the assembled tangent's diagonal itself; exact and symmetric tangents of the
+    valve, displaced smoothly), and it differs from the first by ``(k2 - k1) W`` on the
+    diagonal alone, ``W`` the lumped mass (to roundoff)."""
+    from petsc4py import PETSc
+
+    from dolfinx.fem import petsc as fpetsc
+    from mvfem.model import lumped_mass
+
+    m, pb = _small_valve("shift_tangent_")
+    try:
+        W = lumped_mass(m)
+        pb.set_proximal(0.0, weights=W, centre=pb.u.vector.copy())
+        x = pb.u.vector.copy()
+        x.array[:] = _smooth(m, 0.2, -0.1, 0.5)
+        fpetsc.set_bc(x, m.bcs, scale=0.0)
+        k1, k2 = 3.0 * m.stabiliser_scale, 50.0 * m.stabiliser_scale
+        for symmetric in (False, True):
+            pb.evaluate_tangent(x, k1, symmetric=symmetric)
+            first = pb.A.copy()
+            pb.shift_tangent(k2)
+            shifted = pb.A.copy()
+            pb.set_proximal(k2)
+            pb._jacobian(pb.snes, x, pb.A, pb.A,
+                         form=pb._symmetric_form() if symmetric else None)
+            pb.set_proximal(0.0)
+            fresh = pb.A.copy()
+            fresh.axpy(-1.0, shifted)
+            assert fresh.norm(PETSc.NormType.INFINITY) == 0.0
+            diff = shifted.copy()
+            diff.axpy(-1.0, first)
+            expected = W.copy()
+            expected.scale(k2 - k1)
+            d = diff.getDiagonal()
+            d.axpy(-1.0, expected)
+            scale = first.norm(PETSc.NormType.INFINITY)
+            assert d.norm(PETSc.NormType.INFINITY) < 1e-12 * scale
+            zero = W.duplicate()
+            zero.set(0.0)
+            diff.setDiagonal(zero, addv=PETSc.InsertMode.INSERT_VALUES)
+            diff.assemble()
+            assert diff.norm(PETSc.NormType.INFINITY) == 0.0
+            for M in (first, shifted, fresh, diff):
+                M.destroy()
+    finally:
+        pb.destroy()
+
+
+def test_refused_update_shifts_the_tangent_it_had():
+    """After a refused update (the valve's open state refuses its first ones, ``k`` growing
+    fourfold at each) the state is the same, so the next update's tangent is the held one with
+    its diagonal shifted to the new ``k`` (:meth:`SNESProblem.shift_tangent`), not evaluated
+    again; after an accepted one it is evaluated at the new state. The path is, bit for bit,
+    the one where each of those shifts is a fresh evaluation at the held state."""
+    from mvfem.model import lumped_mass
+    from mvfem.solver import PseudoTransient
+
+    paths = {}
+    for mode in ("shift", "fresh"):
+        m, pb = _small_valve(f"shift_ptc_{mode}_")
+        try:
+            calls, held = [], {"inside": False}
+            evaluate, shift = pb.evaluate_tangent, pb.shift_tangent
+
+            def record_evaluate(x, k, symmetric=False):
+                calls.append(("evaluate", k))
+                held.update(x=x.copy(), symmetric=symmetric, inside=True)
+                try:
+                    evaluate(x, k, symmetric=symmetric)
+                finally:
+                    held["inside"] = False
+
+            def record_shift(k):
+                if held["inside"]:  # evaluate_tangent's own shift
+                    return shift(k)
+                calls.append(("shift", k))
+                if mode == "shift":
+                    return shift(k)
+                held["inside"] = True
+                try:
+                    evaluate(held["x"], k, symmetric=held["symmetric"])
+                finally:
+                    held["inside"] = False
+            pb.evaluate_tangent, pb.shift_tangent = record_evaluate, record_shift
+            k0 = m.stabiliser_scale
+            pb.set_proximal(k0, weights=lumped_mass(m), centre=pb.u.vector.copy())
+            ptc = PseudoTransient(pb, k0=k0, atol=1e-30, max_steps=30)
+            ptc.run()
+            h = ptc.history
+            assert len(h) == 30 and len(calls) == 30 and ptc.convexified == 0
+            refused = [i for i, r in enumerate(h) if not r.accepted]
+            assert len(refused) >= 3 and refused[0] == 0
+            for i, r in enumerate(h[1:], 1):
+                kind = "shift" if not h[i - 1].accepted else "evaluate"
+                assert calls[i] == (kind, r.weight)
+                if kind == "shift":
+                    assert r.weight == 4 * h[i - 1].weight
+            paths[mode] = [(r.weight, r.alpha, r.residual, r.accepted) for r in h]
+        finally:
+            pb.destroy()
+    assert paths["shift"] == paths["fresh"]
+
+
 def test_pseudo_time_solves_with_the_symmetric_tangent_above_its_weight():
     """``PseudoTransient.symmetric_above``: from the valve's open state, every update whose
     weight ``k`` is at least that is solved with the symmetric tangent (LDL^T), every other one
@@ -473,13 +579,22 @@ def test_pseudo_time_solves_with_the_symmetric_tangent_above_its_weight():
     for symmetric in (True, False):
         m, pb = _small_valve(f"sym_ptc_{int(symmetric)}_")
         try:
-            calls = []
-            exact = pb.evaluate_tangent
+            calls, held = [], {"inside": False}
+            exact, shift_tangent = pb.evaluate_tangent, pb.shift_tangent
 
             def record(x, shift, symmetric=False):
                 calls.append((shift, symmetric))
-                exact(x, shift, symmetric=symmetric)
-            pb.evaluate_tangent = record
+                held.update(symmetric=symmetric, inside=True)
+                try:
+                    exact(x, shift, symmetric=symmetric)
+                finally:
+                    held["inside"] = False
+
+            def record_shift(shift):  # a refused update's successor: the held tangent
+                if not held["inside"]:
+                    calls.append((shift, held["symmetric"]))
+                shift_tangent(shift)
+            pb.evaluate_tangent, pb.shift_tangent = record, record_shift
             k0 = m.stabiliser_scale
             pb.set_proximal(k0, weights=lumped_mass(m), centre=pb.u.vector.copy())
             ptc = PseudoTransient(pb, k0=k0, atol=1e-30, max_steps=8, symmetric=symmetric,
