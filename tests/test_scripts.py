@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -126,6 +127,35 @@ def test_psd_projection_script_agrees_with_eigh(tmp_path):
     blocks, diff, low = int(row[1]), float(row[5]), float(row[6])
     assert blocks > 1000 and diff < 1e-12 and low > -1e-12
     assert "saves" in r.stdout
+
+
+def test_level_costs_script(tmp_path):
+    """scripts/level_costs.py on the 5 mm demo refined once: a row per level whose counts agree
+    with the run's own records (the coarse level's steps in summary ``coarse_start``, the fine
+    level's steps and accepted steps in ``newton_iterations`` and ``load_steps``), times that
+    add up (linear solves and assembly within the level's wall time), the finest level's
+    history with a row per step; an existing ``--out`` is refused (exit 2)."""
+    out = tmp_path / "costs.json"
+    cmd = [sys.executable, str(ROOT / "scripts" / "level_costs.py"), "--size", "5", "--refine",
+           "1", "--pressures", "16", "--history", "--out", str(out)]
+    r = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=600,
+                       check=False)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    (rec,) = json.loads(out.read_text())
+    assert rec["converged"] and len(rec["levels"]) == 2
+    coarse, fine = rec["levels"]
+    assert coarse["steps"] == rec["coarse_start"]["steps"]
+    assert fine["steps"] == rec["newton_iterations"]
+    assert fine["steps"] - fine["refused"] == rec["load_steps"]
+    assert fine["dofs"] > 3 * coarse["dofs"]
+    for lv in rec["levels"]:
+        assert 0 < lv["linear_s"] + lv["assembly_s"] <= lv["wall_s"]
+        assert len(lv["history"]) == lv["steps"]
+        assert sum(not h["accepted"] for h in lv["history"]) == lv["refused"]
+    assert f"| {fine['steps']} | " in r.stdout
+    again = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=600,
+                           check=False)
+    assert again.returncode == 2 and "exists" in again.stderr
 
 
 def test_symmetric_tangent_script(tmp_path):

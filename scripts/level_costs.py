@@ -1,0 +1,127 @@
+"""Where a nested closure's time goes, level by level.
+
+    python scripts/level_costs.py --refine 2 --pressures 16,16.5,17 [--size 2] [--history]
+                                  [--out costs.json]
+
+Closes `mvfem demo`'s scene (mesh ``--size``, mm) refined ``--refine`` times, each level from
+the closure of the level below (``solver.nested``), at each pressure (kPa), one after the
+other in this process, and prints for every pseudo-time solve (a level; a level restarted
+from the open state is a second row): its dofs, steps, refused steps, growths of the matrix's
+pattern (each a new symbolic analysis), updates solved with the symmetric tangent,
+convexified re-solves, and its wall time with the linear solves, the assembly (residuals,
+tangents, energies, the load's work) and the point terms (contact, chordae, hinges) in it;
+then the run's total and the closed coaptation. ``--history`` also prints the finest level's
+steps (weight ``k``, the update's fraction ``alpha``, residual, accepted). ``--out`` writes
+all of it as JSON.
+
+The runs of README "Nested levels" (sessions 31-32) were made with this breakdown. Paths move
+with roundoff by tens of percent (README, "Solving"), so compare codes on several pressures,
+and per step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import mvfem
+import mvfem.run as run_mod
+from mvfem.scene import load_scene
+from mvfem.solver import PseudoTransient
+
+DEMO = Path(mvfem.__file__).parent / "data" / "demo.toml"
+
+#: the rows of the solves of the current run
+LEVELS: list[dict] = []
+
+
+class Recorded(PseudoTransient):
+    """A pseudo-time solve that records what it cost (the run's solves are made as these)."""
+
+    def run(self):
+        pb = self.problem
+        pt = pb.point_terms
+        a0, g0, p0 = pb.assembly_s, pb.regrowths, (pt.time_s if pt is not None else 0.0)
+        t0 = time.perf_counter()
+        try:
+            return super().run()
+        finally:
+            h = self.history
+            LEVELS.append({
+                "dofs": int(pb.x.getSize()), "steps": len(h),
+                "refused": sum(not r.accepted for r in h), "growths": pb.regrowths - g0,
+                "symmetric": self.symmetric_solves, "convexified": self.convexified,
+                "wall_s": time.perf_counter() - t0, "linear_s": self.solve_s,
+                "assembly_s": pb.assembly_s - a0,
+                "point_terms_s": (pt.time_s if pt is not None else 0.0) - p0,
+                "history": [{"k": r.weight, "alpha": r.alpha, "residual": r.residual,
+                             "accepted": r.accepted} for r in h]})
+
+
+def close(refine: int, size: float, pressure_kpa: float) -> dict:
+    """One nested closure of the demo; its levels' rows and the run's summary numbers."""
+    scene = load_scene(DEMO).with_changes({"mesh.size": size, "mesh.refine": refine,
+                                           "load.pressure": f"{pressure_kpa} kPa"})
+    LEVELS.clear()
+    t0 = time.perf_counter()
+    res = run_mod.solve(scene, progress=False, write=False)
+    s = res.summary
+    return {"pressure_kPa": pressure_kpa, "refine": refine, "size_mm": size,
+            "wall_s": time.perf_counter() - t0, "converged": bool(s["converged"]),
+            "newton_iterations": s["newton_iterations"], "load_steps": s["load_steps"],
+            "coaptation_mm": s["valve"]["coaptation_length_mm"],
+            "coarse_start": s.get("coarse_start"), "levels": [dict(lv) for lv in LEVELS]}
+
+
+def table(rec: dict, history: bool) -> str:
+    lines = [f"refine {rec['refine']}, {rec['size_mm']} mm, {rec['pressure_kPa']} kPa: "
+             f"{rec['wall_s']:.1f} s, converged {rec['converged']}, coaptation "
+             f"{rec['coaptation_mm']:.6f} mm", "",
+             "| dofs | steps | refused | growths | symmetric | convexified | wall (s) | "
+             "linear solves (s) | assembly (s) | point terms (s) | a step (s) |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for lv in rec["levels"]:
+        lines.append(f"| {lv['dofs']} | {lv['steps']} | {lv['refused']} | {lv['growths']} | "
+                     f"{lv['symmetric']} | {lv['convexified']} | {lv['wall_s']:.2f} | "
+                     f"{lv['linear_s']:.2f} | {lv['assembly_s']:.2f} | "
+                     f"{lv['point_terms_s']:.2f} | {lv['wall_s'] / max(lv['steps'], 1):.3f} |")
+    if history and rec["levels"]:
+        lines += ["", "| step | k | alpha | residual | accepted |", "|---:|---:|---:|---:|---|"]
+        for i, h in enumerate(rec["levels"][-1]["history"], 1):
+            lines.append(f"| {i} | {h['k']:.3g} | {h['alpha']:.3g} | {h['residual']:.3g} | "
+                         f"{h['accepted']} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--refine", type=int, default=2, help="times the demo's mesh is refined")
+    p.add_argument("--size", type=float, default=2.0, help="the demo's mesh size, mm")
+    p.add_argument("--pressures", default="16", help="kPa, comma-separated")
+    p.add_argument("--history", action="store_true", help="the finest level's steps too")
+    p.add_argument("--out", default=None, help="write the records as JSON here")
+    a = p.parse_args(argv)
+    try:
+        pressures = [float(v) for v in a.pressures.split(",")]
+    except ValueError:
+        print(f"level_costs: --pressures {a.pressures!r}: not numbers", file=sys.stderr)
+        return 2
+    if a.out is not None and Path(a.out).exists():
+        print(f"level_costs: --out {a.out}: exists; choose another name", file=sys.stderr)
+        return 2
+    run_mod.PseudoTransient = Recorded
+    records = []
+    for pressure in pressures:
+        rec = close(a.refine, a.size, pressure)
+        records.append(rec)
+        print(table(rec, a.history), "\n", flush=True)
+    if a.out is not None:
+        Path(a.out).write_text(json.dumps(records, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
