@@ -618,13 +618,14 @@ class PseudoTransient:
     has fallen below its start ``k0`` (Newton's regime), every later update must lower the
     merit (the potential where the problem has one, which then judges alone: no refusal for
     the residual's growth, see ``reject_descending``; else the residual), after up to
-    ``backtracks`` halvings, or it is refused: the end game cannot cycle. After ``restart_after`` refusals in a row there
-    (the residual is only piecewise smooth where contact pairs change from face to edge), the
-    run moves in pseudo-time again from the current state with ``k = restart_weight k0``, at
-    most ``restarts`` times. As ``k -> 0`` the steps become Newton's, and the iteration
-    converges quadratically. Every state is an equilibrium candidate of the problem as posed:
-    the residual tested is that of ``F`` alone, with no damping term, so the state returned
-    when ``||F|| <= atol`` needs no removal of a stabiliser.
+    ``backtracks`` halvings, or it is refused: the end game cannot cycle. After
+    ``restart_after`` refusals in a row there (the residual is only piecewise smooth where
+    contact pairs change from face to edge), the run moves in pseudo-time again from the
+    current state with ``k = restart_weight k0``, at most ``restarts`` times. As ``k -> 0``
+    the steps become Newton's, and the iteration converges quadratically. Every state is an
+    equilibrium candidate of the problem as posed: the residual tested is that of ``F``
+    alone, with no damping term, so the state returned when ``||F|| <= atol`` needs no
+    removal of a stabiliser.
 
     ``max_move`` caps the largest displacement component of one update (the first updates
     from a slack state are wild: hundreds of mm, refused anyway, and expensive to check for

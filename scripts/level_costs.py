@@ -29,6 +29,7 @@ from pathlib import Path
 
 import mvfem
 import mvfem.run as run_mod
+from mvfem.errors import InputError
 from mvfem.scene import load_scene
 from mvfem.solver import PseudoTransient
 
@@ -115,7 +116,11 @@ def main(argv=None) -> int:
     run_mod.PseudoTransient = Recorded
     records = []
     for pressure in pressures:
-        rec = close(a.refine, a.size, pressure)
+        try:
+            rec = close(a.refine, a.size, pressure)
+        except InputError as e:
+            print(f"level_costs: {e}", file=sys.stderr)
+            return 2
         records.append(rec)
         print(table(rec, a.history), "\n", flush=True)
     if a.out is not None:
