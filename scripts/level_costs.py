@@ -27,6 +27,8 @@ import sys
 import time
 from pathlib import Path
 
+from mpi4py import MPI
+
 import mvfem
 import mvfem.run as run_mod
 from mvfem.errors import InputError
@@ -74,7 +76,7 @@ def close(refine: int, size: float, pressure_kpa: float) -> dict:
             "wall_s": time.perf_counter() - t0, "converged": bool(s["converged"]),
             "newton_iterations": s["newton_iterations"], "load_steps": s["load_steps"],
             "coaptation_mm": s["valve"]["coaptation_length_mm"],
-            "coarse_start": s.get("coarse_start"), "levels": [dict(lv) for lv in LEVELS]}
+            "coarse_start": s.get("coarse_start"), "levels": list(LEVELS)}
 
 
 def table(rec: dict, history: bool) -> str:
@@ -105,25 +107,29 @@ def main(argv=None) -> int:
     p.add_argument("--history", action="store_true", help="the finest level's steps too")
     p.add_argument("--out", default=None, help="write the records as JSON here")
     a = p.parse_args(argv)
+    root = MPI.COMM_WORLD.rank == 0   # (under mpirun: rank 0 prints and writes)
+
+    def error(msg: str) -> int:
+        if root:
+            print(f"level_costs: {msg}", file=sys.stderr)
+        return 2
     try:
         pressures = [float(v) for v in a.pressures.split(",")]
     except ValueError:
-        print(f"level_costs: --pressures {a.pressures!r}: not numbers", file=sys.stderr)
-        return 2
-    if a.out is not None and Path(a.out).exists():
-        print(f"level_costs: --out {a.out}: exists; choose another name", file=sys.stderr)
-        return 2
+        return error(f"--pressures {a.pressures!r}: not numbers")
+    if a.out is not None and MPI.COMM_WORLD.bcast(Path(a.out).exists() if root else None):
+        return error(f"--out {a.out}: exists; choose another name")
     run_mod.PseudoTransient = Recorded
     records = []
     for pressure in pressures:
         try:
             rec = close(a.refine, a.size, pressure)
         except InputError as e:
-            print(f"level_costs: {e}", file=sys.stderr)
-            return 2
+            return error(str(e))
         records.append(rec)
-        print(table(rec, a.history), "\n", flush=True)
-    if a.out is not None:
+        if root:
+            print(table(rec, a.history), "\n", flush=True)
+    if a.out is not None and root:
         Path(a.out).write_text(json.dumps(records, indent=1))
     return 0
 
