@@ -396,7 +396,10 @@ class SNESProblem:
     def evaluate_tangent(self, x: PETSc.Vec, shift: float, symmetric: bool = False) -> None:
         """Tangent at ``x`` plus ``shift`` x the proximal weights on the diagonal, into
         ``self.A``; with ``symmetric``, the load's part replaced by its symmetric part (see
-        :meth:`symmetric_solver`). Its unshifted diagonal is kept for :meth:`shift_tangent`."""
+        :meth:`symmetric_solver`). Its unshifted diagonal is kept for :meth:`shift_tangent`.
+        The forms are assembled at ``x`` itself: the last evaluation may have left ``u``
+        elsewhere (:meth:`load_work` at ``x + (y - x)``, ``y`` to roundoff)."""
+        self._update_u(x)
         k = self._prox_k
         self._prox_k = 0.0
         try:

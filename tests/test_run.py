@@ -462,6 +462,41 @@ def test_symmetric_tangent_is_the_tangents_symmetric_part(comm):
 
 
 @pytest.mark.mpi
+def test_tangent_is_assembled_at_its_state(comm):
+    """``SNESProblem.evaluate_tangent(x)`` is the tangent at ``x`` whatever state the last
+    evaluation left in ``u``: after ``load_work(x, y)`` (which ends at ``x + (y - x)``; a
+    pseudo-time step's trial ``y`` accepted, the next tangent is at ``y``) it equals, entry
+    for entry, the tangent assembled right after the residual at ``x`` (SNES's order). Until
+    session 33 its forms were assembled where ``u`` was left."""
+    from petsc4py import PETSc
+
+    from dolfinx.fem import petsc as fpetsc
+
+    m, pb = _small_valve("tangent_at_x_")
+    try:
+        x = pb.u.vector.copy()
+        x.array[:] = _smooth(m, 0.2, -0.1, 0.5)
+        fpetsc.set_bc(x, m.bcs, scale=0.0)
+        y = x.copy()
+        y.array[:] += _smooth(m, -0.3, 0.2, 0.1)
+        fpetsc.set_bc(y, m.bcs, scale=0.0)
+        pb.evaluate_residual(x)
+        pb.evaluate_tangent(x, 0.0)
+        at_x = pb.A.copy()
+        pb.load_work(x, y)
+        pb.evaluate_tangent(x, 0.0)
+        diff = at_x.copy()
+        diff.axpy(-1.0, pb.A)
+        assert diff.norm(PETSc.NormType.INFINITY) == 0.0
+        pb.evaluate_tangent(y, 0.0)   # (the tangent at y differs: the check can fail)
+        diff = at_x.copy()
+        diff.axpy(-1.0, pb.A)
+        assert diff.norm(PETSc.NormType.INFINITY) > 1e-3 * at_x.norm(PETSc.NormType.INFINITY)
+    finally:
+        pb.destroy()
+
+
+@pytest.mark.mpi
 def test_shifted_tangent_is_the_tangent_at_another_weight(comm):
     """``SNESProblem.shift_tangent(k2)`` after ``evaluate_tangent(x, k1)`` is, entry for entry,
     the matrix of SNES's Jacobian with the proximal weight ``k2`` (``_jacobian``, which adds
