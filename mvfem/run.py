@@ -166,9 +166,10 @@ class _PseudoTimeProgress:
 
     def __call__(self, rec: PseudoTimeRecord, ptc: PseudoTransient) -> None:
         el = time.perf_counter() - self.t0
-        msg = (f"  pseudo-time step {rec.step:4d}  residual {rec.residual / self.f:9.3e} of the "
-               f"load  dt {1 / rec.weight:9.3g} mm/Pa  step x {rec.alpha:5.3f}"
-               f"  {'ok    ' if rec.accepted else 'refused'} {el:6.1f} s")
+        said = ("the potential rose" if np.isnan(rec.residual)
+                else f"residual {rec.residual / self.f:9.3e} of the load")
+        msg = (f"  pseudo-time step {rec.step:4d}  {said}  dt {1 / rec.weight:9.3g} mm/Pa"
+               f"  step x {rec.alpha:5.3f}  {'ok    ' if rec.accepted else 'refused'} {el:6.1f} s")
         if self.enabled and rec.accepted and el >= self.next:
             self.next = el + 2.0
             log.info(msg)

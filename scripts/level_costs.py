@@ -27,6 +27,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from mpi4py import MPI
 
 import mvfem
@@ -60,7 +61,7 @@ class Recorded(PseudoTransient):
                 "wall_s": time.perf_counter() - t0, "linear_s": self.solve_s,
                 "assembly_s": pb.assembly_s - a0,
                 "point_terms_s": (pt.time_s if pt is not None else 0.0) - p0,
-                "history": [{"k": r.weight, "alpha": r.alpha, "residual": r.residual,
+                "history": [{"k": r.weight, "alpha": r.alpha, "residual": None if np.isnan(r.residual) else r.residual,
                              "accepted": r.accepted} for r in h]})
 
 
@@ -94,8 +95,8 @@ def table(rec: dict, history: bool) -> str:
     if history and rec["levels"]:
         lines += ["", "| step | k | alpha | residual | accepted |", "|---:|---:|---:|---:|---|"]
         for i, h in enumerate(rec["levels"][-1]["history"], 1):
-            lines.append(f"| {i} | {h['k']:.3g} | {h['alpha']:.3g} | {h['residual']:.3g} | "
-                         f"{h['accepted']} |")
+            r = "-" if h["residual"] is None else f"{h['residual']:.3g}"  # not evaluated
+            lines.append(f"| {i} | {h['k']:.3g} | {h['alpha']:.3g} | {r} | {h['accepted']} |")
     return "\n".join(lines)
 
 

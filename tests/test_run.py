@@ -602,6 +602,66 @@ def test_refused_update_shifts_the_tangent_it_had():
     assert paths["shift"] == paths["fresh"]
 
 
+def test_newton_regime_skips_the_residual_where_the_potential_rose(monkeypatch):
+    """In Newton's regime the potential alone judges an update: a trial whose potential rose
+    is halved or the step refused whatever its residual, so that residual is not evaluated
+    (nan in the history where a refused step's last trial rose). The 5 mm valve refined once
+    (nested) backtracks there on its fine level (47 of 67 steps halved). Its path is, bit for
+    bit, the one where every trial's residual is evaluated before its potential (the order
+    before session 33), and the states whose residual is skipped are trials only: every
+    state whose residual the old order evaluates and the new one does not had its potential
+    evaluated."""
+    import mvfem.run as run_mod
+    from mvfem.scene import load_scene
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    scene = scene.with_changes({"mesh.size": 5.0, "mesh.refine": 1})
+    runs, base = {}, run_mod.PseudoTransient
+    for mode in ("skip", "every"):
+        levels = []
+
+        class Recorded(base):
+            def run(self):
+                pb = self.problem
+                seen = {"energy": set(), "residual": []}
+                evaluate_energy, evaluate_residual = pb.evaluate_energy, pb.evaluate_residual
+
+                def energy(x):
+                    if mode == "every":  # the residual first, as at every trial before
+                        residual(x)
+                    seen["energy"].add(x.array_r.tobytes())
+                    return evaluate_energy(x)
+
+                def residual(x):
+                    seen["residual"].append(x.array_r.tobytes())
+                    return evaluate_residual(x)
+                pb.evaluate_energy, pb.evaluate_residual = energy, residual
+                try:
+                    return super().run()
+                finally:
+                    pb.evaluate_energy, pb.evaluate_residual = evaluate_energy, evaluate_residual
+                    levels.append((self.k0, list(self.history), seen))
+        monkeypatch.setattr(run_mod, "PseudoTransient", Recorded)
+        res = run_mod.solve(scene, progress=False, write=False)
+        assert res.converged and len(levels) >= 2  # the coarse level, the fine one (in parts)
+        runs[mode] = levels
+    assert len(runs["skip"]) == len(runs["every"])
+    for (k0, h, skip), (_, h_every, every) in zip(runs["skip"], runs["every"]):
+        path = [(r.weight, r.alpha, r.accepted) + ((r.residual,) if r.accepted else ())
+                for r in h]
+        assert path == [(r.weight, r.alpha, r.accepted) + ((r.residual,) if r.accepted else ())
+                        for r in h_every]
+        assert all(np.isfinite(r.residual) for r in h if r.accepted)
+        assert all(r.weight < k0 for r in h if np.isnan(r.residual))
+        skipped = set(every["residual"]) - set(skip["residual"])
+        assert skipped <= skip["energy"]
+    halved = [r for k0, h, _ in runs["skip"] for r in h if r.weight < k0 and r.alpha < 1]
+    assert len(halved) >= 10 and any(np.isnan(r.residual) for _, h, _ in runs["skip"] for r in h)
+    skipped = sum(len(set(every["residual"]) - set(skip["residual"]))
+                  for (_, _, skip), (_, _, every) in zip(runs["skip"], runs["every"]))
+    assert skipped >= len(halved)
+
+
 def test_pseudo_time_solves_with_the_symmetric_tangent_above_its_weight():
     """``PseudoTransient.symmetric_above``: from the valve's open state, every update whose
     weight ``k`` is at least that is solved with the symmetric tangent (LDL^T), every other one
