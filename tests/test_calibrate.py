@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_child
 from mpi4py import MPI
 
 import mvfem
@@ -38,8 +38,8 @@ def reference(tmp_path_factory):
 
 
 def _run(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "mvfem.cli", "calibrate", str(DEMO), *args],
-                          capture_output=True, text=True, env=_env(), cwd=cwd, timeout=120)
+    return run_child([sys.executable, "-m", "mvfem.cli", "calibrate", str(DEMO), *args],
+                     capture_output=True, text=True, env=_env(), cwd=cwd, timeout=120)
 
 
 FIT = "chordae.marginal.length_factor"

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from conftest import run_child
 
 ROOT = Path(__file__).resolve().parents[1]
 CODE = ("import mvfem, mvfem.forms, mvfem.meshes, mvfem.forms.kinematics as k; "
@@ -16,8 +16,8 @@ CODE = ("import mvfem, mvfem.forms, mvfem.meshes, mvfem.forms.kinematics as k; "
 @pytest.mark.parametrize("where", ["root", "elsewhere"])
 def test_import(where, tmp_path):
     cwd = ROOT if where == "root" else tmp_path
-    out = subprocess.run([sys.executable, "-c", CODE], cwd=cwd, capture_output=True, text=True,
-                         check=True).stdout.split()
+    out = run_child([sys.executable, "-c", CODE], cwd=cwd, capture_output=True, text=True,
+                    check=True).stdout.split()
     assert Path(out[0]) == ROOT / "forms" / "__init__.py"
     assert Path(out[1]) == ROOT / "meshes" / "__init__.py"
 
@@ -27,13 +27,13 @@ def test_forms_import_ufl_only():
     code = ("import sys; import mvfem.forms; "
             "bad = [m for m in ('dolfinx', 'petsc4py', 'mpi4py', 'gmsh', 'meshio') if m in sys.modules]; "
             "print(','.join(bad))")
-    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                       check=True)
+    r = run_child([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                  check=True)
     assert r.stdout.strip() == ""
 
 
 def test_console_script(tmp_path):
     exe = Path(sys.executable).parent / "mvfem"
-    r = subprocess.run([str(exe), "materials", "--leaflet", "anterior"], capture_output=True,
-                       text=True, cwd=tmp_path)
+    r = run_child([str(exe), "materials", "--leaflet", "anterior"], capture_output=True,
+                  text=True, cwd=tmp_path)
     assert r.returncode == 0 and "CP05" in r.stdout

@@ -22,12 +22,12 @@ numbers in README "Repairs".
 
 from __future__ import annotations
 
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_child
 from scipy.special import ellipe
 
 import mvfem
@@ -258,8 +258,8 @@ def test_translated_annulus_and_papillary_tips_translate_the_solution(tmp_path):
 
 # --------------------------------------------------------------------------- bad input, CLI
 def _cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "mvfem.cli", *args], capture_output=True,
-                          text=True, timeout=300, cwd=cwd, check=False)
+    return run_child([sys.executable, "-m", "mvfem.cli", *args], capture_output=True,
+                     text=True, timeout=300, cwd=cwd, check=False)
 
 
 @pytest.mark.parametrize("key, change, words", [
@@ -416,11 +416,11 @@ def test_repair_compare_end_to_end(tmp_path):
     import csv
 
     out = tmp_path / "rc"
-    r = subprocess.run([sys.executable, "-m", "mvfem.cli", "repair-compare", str(PATHOLOGICAL),
-                        "--repairs", str(REPAIRS / "ring_d36.toml"),
-                        str(REPAIRS / "clip_a2p2.toml"), "--out", str(out), "--no-diastole",
-                        "--set", "mesh.size=3.0"],
-                       capture_output=True, text=True, timeout=3600, check=False)
+    r = run_child([sys.executable, "-m", "mvfem.cli", "repair-compare", str(PATHOLOGICAL),
+                   "--repairs", str(REPAIRS / "ring_d36.toml"),
+                   str(REPAIRS / "clip_a2p2.toml"), "--out", str(out), "--no-diastole",
+                   "--set", "mesh.size=3.0"],
+                  capture_output=True, text=True, timeout=3600, check=False)
     assert r.returncode == 0, r.stderr[-3000:]
     print(r.stdout)
     rows = list(csv.DictReader((out / "comparison.csv").open()))

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import run_child
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,16 +33,16 @@ def _env():
 
 def test_biaxial_figures(tmp_path):
     out = tmp_path / "figs"
-    r = subprocess.run([*_mpirun(2), sys.executable, str(ROOT / "scripts" / "biaxial_figures.py"),
-                        str(out)], capture_output=True, text=True, env=_env(), timeout=600)
+    r = run_child([*_mpirun(2), sys.executable, str(ROOT / "scripts" / "biaxial_figures.py"),
+                   str(out)], capture_output=True, text=True, env=_env(), timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     assert (out / "biaxial.csv").stat().st_size > 100_000
     assert (out / "biaxial_anterior.png").exists() and (out / "biaxial_posterior.png").exists()
 
 
 def test_solver_options_coarse(tmp_path):
-    r = subprocess.run([*_mpirun(2), sys.executable, str(ROOT / "scripts" / "solver_options.py"),
-                        "2.5"], capture_output=True, text=True, env=_env(), timeout=900)
+    r = run_child([*_mpirun(2), sys.executable, str(ROOT / "scripts" / "solver_options.py"),
+                   "2.5"], capture_output=True, text=True, env=_env(), timeout=900)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "lu: 11 converged" in r.stdout and "iterative: 11 converged" in r.stdout
 
@@ -55,10 +56,10 @@ def test_scaling_script_on_two_ranks(tmp_path):
     from mvfem import reference as ref
 
     rec = tmp_path / "scaling.jsonl"
-    r = subprocess.run([*_mpirun(2), sys.executable, str(ROOT / "scripts" / "scaling.py"),
-                        "--case", "disk", "--size", "2", "--record", str(rec)],
-                       capture_output=True, text=True, env=_env(), timeout=300,
-                       stdin=subprocess.DEVNULL, check=False)
+    r = run_child([*_mpirun(2), sys.executable, str(ROOT / "scripts" / "scaling.py"),
+                   "--case", "disk", "--size", "2", "--record", str(rec)],
+                  capture_output=True, text=True, env=_env(), timeout=300,
+                  stdin=subprocess.DEVNULL, check=False)
     assert r.returncode == 0, r.stderr[-2000:]
     row = json.loads(rec.read_text())
     assert row["processes"] == 2 and row["converged"] and row["cells"] > 100
@@ -69,9 +70,9 @@ def test_scaling_script_on_two_ranks(tmp_path):
 def test_hard_cases_script_two_cases(tmp_path):
     """scripts/hard_cases.py (issue 7) on two quick cases: the flat disk converges, the folded
     imported valve is refused with one line; the table says so."""
-    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "hard_cases.py"), "--out",
-                        str(tmp_path / "hard"), "--cases", "flat-disk-cp08,inverted"],
-                       capture_output=True, text=True, env=_env(), timeout=300, check=False)
+    r = run_child([sys.executable, str(ROOT / "scripts" / "hard_cases.py"), "--out",
+                   str(tmp_path / "hard"), "--cases", "flat-disk-cp08,inverted"],
+                  capture_output=True, text=True, env=_env(), timeout=300, check=False)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     table = (tmp_path / "hard" / "hard_cases.md").read_text()
     assert "| flat-disk-cp08 |" in table and "| converged | 0 |" in table
@@ -86,9 +87,9 @@ def test_valve_refinement_nested_levels(tmp_path):
     both rows."""
     import csv
 
-    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "valve_refinement.py"), "--out",
-                        str(tmp_path / "nested"), "--sizes", "5", "--refine", "1"],
-                       capture_output=True, text=True, env=_env(), timeout=600, check=False)
+    r = run_child([sys.executable, str(ROOT / "scripts" / "valve_refinement.py"), "--out",
+                   str(tmp_path / "nested"), "--sizes", "5", "--refine", "1"],
+                  capture_output=True, text=True, env=_env(), timeout=600, check=False)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     rows = list(csv.DictReader(open(tmp_path / "nested" / "refinement.csv")))
     assert [(row["refine"], row["start"]) for row in rows] == [("1", "nested"), ("0", "open")]
@@ -104,9 +105,9 @@ def test_contact_sheets_pressure_on_coarse_grids(tmp_path):
     0.5 mm): the barrier's pressure between two parallel sheets 0.2 mm apart is the same on
     both grids (within 5 %, measured 629 and 635 kPa) and pushes them apart. (Finer grids give
     more: README, "Nested levels".)"""
-    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "contact_sheets.py"), "--sizes",
-                        "1,0.5", "--gaps", "0.2"],
-                       capture_output=True, text=True, env=_env(), timeout=300, check=False)
+    r = run_child([sys.executable, str(ROOT / "scripts" / "contact_sheets.py"), "--sizes",
+                   "1,0.5", "--gaps", "0.2"],
+                  capture_output=True, text=True, env=_env(), timeout=300, check=False)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     rows = [line.split("|") for line in r.stdout.splitlines() if line.startswith("| 1 |")
             or line.startswith("| 0.5 |")]
@@ -118,9 +119,9 @@ def test_psd_projection_script_agrees_with_eigh(tmp_path):
     """scripts/psd_projection.py on 0.5 mm grids (a few thousand blocks): the compiled
     projection equals numpy's ``eigh`` one to 1e-12 of each block's largest entry and leaves
     no eigenvalue below -1e-12 of it; the in-place line is printed."""
-    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "psd_projection.py"), "--h", "0.5",
-                        "--repeats", "1"],
-                       capture_output=True, text=True, env=_env(), timeout=300, check=False)
+    r = run_child([sys.executable, str(ROOT / "scripts" / "psd_projection.py"), "--h", "0.5",
+                   "--repeats", "1"],
+                  capture_output=True, text=True, env=_env(), timeout=300, check=False)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     row = next(line.split("|") for line in r.stdout.splitlines()
                if line.startswith("| ") and line[2].isdigit())
@@ -138,8 +139,8 @@ def test_level_costs_script(tmp_path):
     out = tmp_path / "costs.json"
     cmd = [sys.executable, str(ROOT / "scripts" / "level_costs.py"), "--size", "5", "--refine",
            "1", "--pressures", "16", "--history", "--out", str(out)]
-    r = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=600,
-                       check=False)
+    r = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=600,
+                  check=False)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     (rec,) = json.loads(out.read_text())
     assert rec["converged"] and len(rec["levels"]) == 2
@@ -153,8 +154,8 @@ def test_level_costs_script(tmp_path):
         assert len(lv["history"]) == lv["steps"]
         assert sum(not h["accepted"] for h in lv["history"]) == lv["refused"]
     assert f"| {fine['steps']} | " in r.stdout
-    again = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=600,
-                           check=False)
+    again = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=600,
+                      check=False)
     assert again.returncode == 2 and "exists" in again.stderr
 
 
@@ -162,9 +163,9 @@ def test_symmetric_tangent_script(tmp_path):
     """scripts/symmetric_tangent.py on the 5 mm demo refined once: a row per weight, where the
     LU and LDL^T updates differ by less than 5 % at the sequenced start's weight (1e4: there
     ``k M`` dominates the tangent's skew part) and both descend (positive cosines with -F)."""
-    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "symmetric_tangent.py"),
-                        "--size", "5", "--refine", "1", "--repeats", "1", "--weights", "1e4,1"],
-                       capture_output=True, text=True, env=_env(), timeout=600, check=False)
+    r = run_child([sys.executable, str(ROOT / "scripts" / "symmetric_tangent.py"),
+                   "--size", "5", "--refine", "1", "--repeats", "1", "--weights", "1e4,1"],
+                  capture_output=True, text=True, env=_env(), timeout=600, check=False)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     rows = [line.split("|") for line in r.stdout.splitlines()
             if line.startswith("| ") and line[2].isdigit()]

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_child
 
 from mvfem.cli import main
 from mvfem.errors import InputError
@@ -396,9 +397,9 @@ def test_paper_figures_script_quick(tmp_path):
     from test_scripts import _env, _mpirun
 
     out = tmp_path / "paper"
-    r = subprocess.run([*_mpirun(2), sys.executable, str(ROOT / "scripts" / "paper_figures.py"),
-                        "--out", str(out), "--quick"], capture_output=True, text=True,
-                       env=_env(), timeout=600)
+    r = run_child([*_mpirun(2), sys.executable, str(ROOT / "scripts" / "paper_figures.py"),
+                   "--out", str(out), "--quick"], capture_output=True, text=True,
+                  env=_env(), timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     rows = _rows(out / "results.csv")
     assert sorted((r["case"], r["set"]) for r in rows) == sorted(

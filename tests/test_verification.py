@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_child
 import ufl
 from dolfinx import fem
 from mpi4py import MPI
@@ -442,9 +442,9 @@ def test_verification_script():
                OPENBLAS_NUM_THREADS="1")
     for k in [k for k in env if k.startswith(("OMPI_COMM", "PMIX", "OMPI_MCA_orte"))]:
         env.pop(k)
-    r = subprocess.run([mpirun, "--oversubscribe", "-n", "2", sys.executable,
-                        str(ROOT / "scripts" / "verification.py"), "--quick"],
-                       capture_output=True, text=True, env=env, timeout=900)
+    r = run_child([mpirun, "--oversubscribe", "-n", "2", sys.executable,
+                   str(ROOT / "scripts" / "verification.py"), "--quick"],
+                  capture_output=True, text=True, env=env, timeout=900)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     rows = [line for line in r.stdout.splitlines() if line.startswith("| ")]
     assert len(rows) == 1 + 4 + 1 + 11  # header, cases, hard-start header, sets
