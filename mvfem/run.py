@@ -548,7 +548,9 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
                 f"on {fine} ")
         if info["used"]:
             if progress:
-                log.info(line + "from its closed state")
+                scaled = (f" x {info['scale']:g} (as moved, {info['crossings']} edge(s) "
+                          "crossed a triangle)") if info.get("scale", 1.0) != 1.0 else ""
+                log.info(line + "from its closed state" + scaled)
         else:
             log.warning(line + f"from the open state ({info['reason']})")
     return info

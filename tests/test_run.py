@@ -778,6 +778,42 @@ def test_coarse_start_refuses_what_it_cannot_start(changes, what):
         solve(scene.with_changes(changes), progress=False, write=False)
 
 
+def test_transfer_scales_a_crossing_state_back():
+    """The 6 mm demo's closure moved onto the 4 mm mesh crosses (edges through triangles, with
+    the offsets and without; ``solver.coarse_start`` refuses it), and still does at 0.9-0.6 x
+    that state (the model's own crossing count). ``sequence.transfer`` with the default scales
+    (down to 0.7) refuses it and leaves the open state; with 0.6 and 0.5 allowed it takes 0.5
+    x the state without offsets (``transfer_nodes``, the clamp at zero), which does not cross."""
+    from mvfem.model import build_model
+    from mvfem.scene import load_scene
+    from mvfem.sequence import SCALES, transfer, transfer_nodes
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    coarse = solve(scene.with_changes({"mesh.size": 6.0}), progress=False, write=False)
+    assert coarse.converged
+    fine = build_model(scene.with_changes({"mesh.size": 4.0}), MPI.COMM_WORLD)
+    cv, fv = coarse.model.view, fine.view
+    Uc = cv.gather(coarse.model.u.x.array[:coarse.model.V.dofmap.index_map.size_local * 3])
+    moved = {}
+    for offsets in (True, False):
+        moved[offsets], _ = transfer_nodes(cv.X, cv.cells, Uc, fv.X, offsets=offsets)
+        moved[offsets][~fv.free] = 0.0
+    crossings = {(offsets, s): fine.contact.penetration(fv.X + s * U)["intersections"]
+                 for offsets, U in moved.items() for s in (1.0, 0.9, 0.8, 0.7, 0.6, 0.5)}
+    assert min(crossings[o, 1.0] for o in (True, False)) > 0
+    assert all(crossings[False, s] > 0 for s in (1.0, 0.9, 0.8, 0.7, 0.6))
+    assert crossings[False, 0.5] == 0 and min(SCALES) > 0.5
+
+    out = transfer(coarse.model, fine)
+    assert not out["used"] and "scaled by 0.7" in out["reason"]
+    assert np.abs(fine.u.x.array).max() == 0.0
+    out = transfer(coarse.model, fine, scales=(0.9, 0.8, 0.7, 0.6, 0.5))
+    assert out["used"] and out["scale"] == 0.5 and not out["offsets"]
+    assert out["crossings"] == crossings[False, 1.0]
+    u = fine.u.x.array.reshape(-1, 3)[:len(fv.X)]
+    assert np.array_equal(u, 0.5 * moved[False])
+
+
 def test_nested_levels_close_a_refined_valve(tmp_path):
     """``mesh.refine = 1`` (``solver.nested`` by default) on the 5 mm demo valve: the unrefined
     valve is closed first, its closed state carried onto the refined mesh (whose nodes include
