@@ -61,7 +61,9 @@ class Recorded(PseudoTransient):
                 "wall_s": time.perf_counter() - t0, "linear_s": self.solve_s,
                 "assembly_s": pb.assembly_s - a0,
                 "point_terms_s": (pt.time_s if pt is not None else 0.0) - p0,
-                "history": [{"k": r.weight, "alpha": r.alpha, "residual": None if np.isnan(r.residual) else r.residual,
+                # a residual not evaluated (the potential rose, Newton's regime): None
+                "history": [{"k": r.weight, "alpha": r.alpha,
+                             "residual": None if np.isnan(r.residual) else r.residual,
                              "accepted": r.accepted} for r in h]})
 
 
