@@ -496,6 +496,26 @@ def test_tangent_is_assembled_at_its_state(comm):
         pb.destroy()
 
 
+def test_point_terms_time_includes_their_energy():
+    """summary.json ``timing.contact_s`` is the point terms' time (``PointTerms.time_s``),
+    taken out of the assembly's: a potential evaluated at a new state (in Newton's regime
+    before the residual, since session 33) counts there, inside the assembly's time."""
+    from dolfinx.fem import petsc as fpetsc
+
+    m, pb = _small_valve("energy_time_")
+    try:
+        pt = m.point_terms
+        x = pb.u.vector.copy()
+        x.array[:] = _smooth(m, 0.2, -0.1, 0.5)
+        fpetsc.set_bc(x, m.bcs, scale=0.0)
+        t_pt, t_asm = pt.time_s, pb.assembly_s
+        pb.evaluate_energy(x)
+        spent_pt, spent_asm = pt.time_s - t_pt, pb.assembly_s - t_asm
+        assert 0.0 < spent_pt <= spent_asm
+    finally:
+        pb.destroy()
+
+
 @pytest.mark.mpi
 def test_shifted_tangent_is_the_tangent_at_another_weight(comm):
     """``SNESProblem.shift_tangent(k2)`` after ``evaluate_tangent(x, k1)`` is, entry for entry,
