@@ -743,6 +743,15 @@ class PseudoTransient:
                 tol = self.energy_rtol * abs(E)
                 return dE < -tol or (dE <= tol and r_new < r)
 
+            def potential() -> tuple[float, float]:
+                """The trial's potential and its change from x (the potential at x first,
+                once; neither leaves anything in b, which holds F of the last residual)."""
+                nonlocal E
+                if E is None:
+                    E = merit(x)
+                E_new = merit(trial)
+                return E_new, change(E_new)
+
             def judge() -> tuple[float, float, float]:
                 """Newton's regime, the potential judging: the trial's potential and its
                 change, then its residual only where that change does not refuse it alone
@@ -750,11 +759,7 @@ class PseudoTransient:
                 A skipped residual saves the forms' vector and the point terms' forces; the
                 contact evaluation is the potential's too. The same path, bit for bit, and
                 the demo refined twice 4 % faster (README, "Nested levels")."""
-                nonlocal E
-                if E is None:
-                    E = merit(x)  # (leaves b alone)
-                E_new = merit(trial)
-                dE = change(E_new)
+                E_new, dE = potential()
                 if np.isfinite(E_new) and dE > self.energy_rtol * abs(E):
                     return np.nan, E_new, dE
                 return pb.evaluate_residual(trial), E_new, dE
@@ -860,10 +865,8 @@ class PseudoTransient:
                     # residual alone (a fivefold growth allowed) the patient valve cycled
                     # between 3.5e-4 and 1.8e-3 of the load for 1000 steps, k never falling
                     # to Newton's regime
-                    if E is None:
-                        E = merit(x)
-                    E_new = merit(trial)
-                    ok = change(E_new) <= self.energy_rtol * abs(E)
+                    E_new, dE = potential()
+                    ok = dE <= self.energy_rtol * abs(E)
                 if ok and monotone:
                     # Newton's regime (dt large): from here on every update must lower the merit
                     # (the potential, else the residual), by backtracking if need be, else it is
@@ -877,10 +880,7 @@ class PseudoTransient:
                     # valve stalled at 4.9e-5 of the load after 1500 steps; with the pressure's
                     # work integrated along the update it converges in 375
                     if not judged and merit is not None:  # (reject_descending)
-                        if E is None:
-                            E = merit(x)  # (leaves b, F(trial), alone)
-                        E_new = merit(trial)
-                        dE = change(E_new)
+                        E_new, dE = potential()
                     if not better(r_new, dE):
                         ok = False
                         for _ in range(self.backtracks):
@@ -892,8 +892,7 @@ class PseudoTransient:
                             else:
                                 r_new = pb.evaluate_residual(trial)
                                 if merit is not None:
-                                    E_new = merit(trial)
-                                    dE = change(E_new)
+                                    E_new, dE = potential()
                             if better(r_new, dE):
                                 ok = True
                                 break
