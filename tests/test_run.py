@@ -362,6 +362,17 @@ def _smooth(m, a: float, b: float, c: float) -> np.ndarray:
     return field[: m.u.vector.getLocalSize()]
 
 
+def _displaced(m, pb, a: float, b: float, c: float, start=None):
+    """A new PETSc vector: ``start`` (the problem's ``u``, the open state, by default) plus
+    :func:`_smooth` ``(a, b, c)``, zero on the clamped dofs."""
+    from dolfinx.fem import petsc as fpetsc
+
+    x = (pb.u.vector if start is None else start).copy()
+    x.array[:] += _smooth(m, a, b, c)
+    fpetsc.set_bc(x, m.bcs, scale=0.0)
+    return x
+
+
 def test_merit_change_is_the_work_of_the_residual_on_a_valve():
     """The pseudo-time end game judges an update by the change of its merit: the change of the
     strain, bending, chordae and contact energies minus the pressure's work along the update
@@ -418,14 +429,11 @@ def test_symmetric_tangent_is_the_tangents_symmetric_part(comm):
     symmetric one is its symmetric part ``(A + A^T) / 2``, computed here by PETSc's transpose
     of the exact one, to roundoff; ``symmetric_solver`` (MUMPS's LDL^T of its upper triangle)
     solves it. A problem without a load form, or with an iterative linear solver, has none."""
-    from dolfinx.fem import petsc as fpetsc
     from petsc4py import PETSc
 
     m, pb = _small_valve("sym_tangent_")
     try:
-        x = pb.u.vector.copy()
-        x.array[:] = _smooth(m, 0.2, -0.1, 0.5)
-        fpetsc.set_bc(x, m.bcs, scale=0.0)
+        x = _displaced(m, pb, 0.2, -0.1, 0.5)
         pb.evaluate_tangent(x, 0.0)
         A = pb.A.copy()
         pb.evaluate_tangent(x, 0.0, symmetric=True)
@@ -470,16 +478,10 @@ def test_tangent_is_assembled_at_its_state(comm):
     session 33 its forms were assembled where ``u`` was left."""
     from petsc4py import PETSc
 
-    from dolfinx.fem import petsc as fpetsc
-
     m, pb = _small_valve("tangent_at_x_")
     try:
-        x = pb.u.vector.copy()
-        x.array[:] = _smooth(m, 0.2, -0.1, 0.5)
-        fpetsc.set_bc(x, m.bcs, scale=0.0)
-        y = x.copy()
-        y.array[:] += _smooth(m, -0.3, 0.2, 0.1)
-        fpetsc.set_bc(y, m.bcs, scale=0.0)
+        x = _displaced(m, pb, 0.2, -0.1, 0.5)
+        y = _displaced(m, pb, -0.3, 0.2, 0.1, start=x)
         pb.evaluate_residual(x)
         pb.evaluate_tangent(x, 0.0)
         at_x = pb.A.copy()
@@ -500,14 +502,10 @@ def test_point_terms_time_includes_their_energy():
     """summary.json ``timing.contact_s`` is the point terms' time (``PointTerms.time_s``),
     taken out of the assembly's: a potential evaluated at a new state (in Newton's regime
     before the residual, since session 33) counts there, inside the assembly's time."""
-    from dolfinx.fem import petsc as fpetsc
-
     m, pb = _small_valve("energy_time_")
     try:
         pt = m.point_terms
-        x = pb.u.vector.copy()
-        x.array[:] = _smooth(m, 0.2, -0.1, 0.5)
-        fpetsc.set_bc(x, m.bcs, scale=0.0)
+        x = _displaced(m, pb, 0.2, -0.1, 0.5)
         t_pt, t_asm = pt.time_s, pb.assembly_s
         pb.evaluate_energy(x)
         spent_pt, spent_asm = pt.time_s - t_pt, pb.assembly_s - t_asm
@@ -525,16 +523,13 @@ def test_shifted_tangent_is_the_tangent_at_another_weight(comm):
     diagonal alone, ``W`` the lumped mass (to roundoff)."""
     from petsc4py import PETSc
 
-    from dolfinx.fem import petsc as fpetsc
     from mvfem.model import lumped_mass
 
     m, pb = _small_valve("shift_tangent_")
     try:
         W = lumped_mass(m)
         pb.set_proximal(0.0, weights=W, centre=pb.u.vector.copy())
-        x = pb.u.vector.copy()
-        x.array[:] = _smooth(m, 0.2, -0.1, 0.5)
-        fpetsc.set_bc(x, m.bcs, scale=0.0)
+        x = _displaced(m, pb, 0.2, -0.1, 0.5)
         k1, k2 = 3.0 * m.stabiliser_scale, 50.0 * m.stabiliser_scale
         for symmetric in (False, True):
             pb.evaluate_tangent(x, k1, symmetric=symmetric)
