@@ -4,16 +4,21 @@ One run (collective; prints one JSON line on rank 0 and appends it to --record):
 
     mpirun -n 2 python scripts/scaling.py --case disk --size 0.2
     mpirun -n 2 python scripts/scaling.py --case valve --size 1.5
+    mpirun -n 2 python scripts/scaling.py --case valve --size 2 --refine 2
 
 Everything (each case under ``mpirun -n 1`` and ``mpirun -n 2``, one run at a time, then the
-table of the README)::
+table of the README; ``--record`` must not exist yet)::
 
-    python scripts/scaling.py --all --record results/scaling.jsonl
+    python scripts/scaling.py --all --record results/scaling.jsonl [--cases disk:0.2,valve:2:2]
 
 Cases: ``disk``, the clamped neo-Hookean disk of the verification (radius 10 mm, mu 20 kPa,
 h 1 mm, 3 kPa follower pressure; about 20,000 triangles at size 0.2), and ``valve``, the demo
-valve closed at 16 kPa with chordae and contact. The disk's probe and the valve's coaptation
-length are printed so that the runs can be seen to give the same answer.
+valve closed at 16 kPa with chordae and contact, at mesh size ``--size`` and refined
+``--refine`` times (nested levels, as ``mvfem run`` does; ``valve:SIZE:REFINE`` in ``--cases``).
+The disk's probe and the valve's coaptation length are printed so that the runs can be seen
+to give the same answer. With ``--all`` each run gets the machine's cores divided by its
+processes as OpenBLAS threads (and, as always, as kernel threads): one process has them all,
+as a plain ``mvfem run`` does.
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ from pathlib import Path
 DEMO_CHANGES = {"output.xdmf": False}
 
 
-def _scene(case: str, size: float):
+def _scene(case: str, size: float, refine: int = 0):
     import mvfem
 
     if case == "disk":
@@ -39,10 +44,11 @@ def _scene(case: str, size: float):
             "fibres": {"centre": o}, "load": {"pressure": 3000.0, "follower": True},
             "output": {"probes": [{"name": "centre", "point": o}], "xdmf": False}})
     demo = Path(mvfem.__file__).parent / "data" / "demo.toml"
-    return mvfem.load_scene(demo).with_changes({"mesh.size": size, **DEMO_CHANGES})
+    return mvfem.load_scene(demo).with_changes({"mesh.size": size, "mesh.refine": refine,
+                                                **DEMO_CHANGES})
 
 
-def run_one(case: str, size: float, record: str | None) -> int:
+def run_one(case: str, size: float, record: str | None, refine: int = 0) -> int:
     import dolfinx  # noqa: F401  (PETSc initialisation is collective)
     from mpi4py import MPI
 
@@ -51,11 +57,13 @@ def run_one(case: str, size: float, record: str | None) -> int:
 
     quiet_jit_logs()
     comm = MPI.COMM_WORLD
-    r = solve(_scene(case, size), out=None, comm=comm, progress=False)
+    r = solve(_scene(case, size, refine), out=None, comm=comm, progress=False)
     s = r.summary
     if comm.rank == 0:
         t = s["timing"]
-        row = {"case": case, "size_mm": size, "processes": comm.size, "cells": s["cells"],
+        row = {"case": case, "size_mm": size, "refine": refine, "processes": comm.size,
+               "threads": int(os.environ.get("OPENBLAS_NUM_THREADS", "0")) or None,
+               "cells": s["cells"],
                "dofs": s["dofs"], "converged": s["converged"],
                "stop_reason": s.get("stop_reason") or "",
                "equilibrium_residual": s.get("equilibrium_residual"),
@@ -81,13 +89,21 @@ def _outcome(r: dict) -> str:
             + (f": {r['stop_reason']}" if r.get("stop_reason") else ""))
 
 
+def _key(r: dict) -> tuple:
+    return r["case"], r["size_mm"], r.get("refine", 0)
+
+
+def _name(r: dict) -> str:
+    refine = r.get("refine", 0)
+    return f"{r['case']} (size {r['size_mm']:g}" + (f", refined {refine}x)" if refine else ")")
+
+
 def table(rows: list[dict]) -> str:
     lines = [("| case | cells | dofs | processes | converged | Newton its | wall (s) | assembly (s) "
               "| linear solves (s) | contact (s) | speed-up | same answer |"),
              "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
-        base = next((b for b in rows if b["case"] == r["case"] and b["size_mm"] == r["size_mm"]
-                     and b["processes"] == 1), None)
+        base = next((b for b in rows if _key(b) == _key(r) and b["processes"] == 1), None)
         speed = base["wall_time_s"] / r["wall_time_s"] if base else float("nan")
         same = "-"
         if base is not None and r is not base:
@@ -97,23 +113,29 @@ def table(rows: list[dict]) -> str:
             elif r["coaptation_length_mm"] is not None and base["coaptation_length_mm"]:
                 same = (f"coaptation {r['coaptation_length_mm']:.3f} vs "
                         f"{base['coaptation_length_mm']:.3f} mm")
-        lines.append(f"| {r['case']} (size {r['size_mm']:g}) | {r['cells']} | {r['dofs']} | "
+        lines.append(f"| {_name(r)} | {r['cells']} | {r['dofs']} | "
                      f"{r['processes']} | {_outcome(r)} | {r['newton_iterations']} | "
                      f"{r['wall_time_s']:.1f} | {r['assembly_s']:.1f} | {r['linear_solve_s']:.1f}"
                      f" | {r['contact_s']:.1f} | {speed:.2f} | {same} |")
     return "\n".join(lines)
 
 
-def run_all(record: str, cases: list[tuple[str, float]], procs=(1, 2), timeout=1800) -> int:
-    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
-               OPENBLAS_NUM_THREADS="1")
+def run_all(record: str, cases: list[tuple[str, float, int]], procs=(1, 2),
+            timeout=3600) -> int:
+    if Path(record).exists():  # (the runs append: an old record would mix into the table)
+        print(f"scaling: --record {record}: exists; choose another name", file=sys.stderr)
+        return 2
+    cores = os.cpu_count() or 1
     Path(record).parent.mkdir(parents=True, exist_ok=True)
-    Path(record).write_text("")
-    for case, size in cases:
+    for case, size, refine in cases:
         for n in procs:
+            # the cores shared among the processes: one process gets them all (the default of
+            # a plain run), two get one each (OpenBLAS's threads otherwise oversubscribe)
+            env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+                       OPENBLAS_NUM_THREADS=str(max(cores // n, 1)))
             cmd = ["mpirun", "--oversubscribe", "-n", str(n), sys.executable, "-u",
                    os.path.abspath(__file__), "--case", case, "--size", str(size),
-                   "--record", os.path.abspath(record)]
+                   "--refine", str(refine), "--record", os.path.abspath(record)]
             print("$ " + " ".join(cmd), flush=True)
             # stdin from /dev/null: mpirun forwards stdin to rank 0 and waits on it otherwise
             subprocess.run(cmd, env=env, stdin=subprocess.DEVNULL, timeout=timeout, check=False)
@@ -126,16 +148,29 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--case", choices=("disk", "valve"), default="disk")
     p.add_argument("--size", type=float, help="mesh size, mm (disk 0.2, valve 1.5)")
+    p.add_argument("--refine", type=int, default=0,
+                   help="valve: times the mesh is refined (nested levels)")
     p.add_argument("--record", help="append the JSON line to this file")
     p.add_argument("--all", action="store_true", help="both cases on 1 and 2 processes")
-    p.add_argument("--cases", default="disk:0.2,valve:1.5",
-                   help="with --all: case:size,... (default disk:0.2,valve:1.5)")
+    p.add_argument("--cases", default="disk:0.2,valve:1.5,valve:2:2",
+                   help="with --all: case:size[:refine],... (default disk:0.2,valve:1.5,"
+                        "valve:2:2, the last the demo refined twice)")
     args = p.parse_args(argv)
     if args.all:
-        cases = [(c.split(":")[0], float(c.split(":")[1])) for c in args.cases.split(",")]
+        try:
+            cases = []
+            for c in args.cases.split(","):
+                name, size, *rest = c.split(":")
+                if name not in ("disk", "valve") or len(rest) > 1:
+                    raise ValueError(c)
+                cases.append((name, float(size), int(rest[0]) if rest else 0))
+        except ValueError:
+            print(f"scaling: --cases {args.cases!r}: expected case:size[:refine],... with case "
+                  "disk or valve", file=sys.stderr)
+            return 2
         return run_all(args.record or "results/scaling.jsonl", cases)
     size = args.size if args.size is not None else {"disk": 0.2, "valve": 1.5}[args.case]
-    return run_one(args.case, size, args.record)
+    return run_one(args.case, size, args.record, args.refine)
 
 
 if __name__ == "__main__":
