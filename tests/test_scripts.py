@@ -173,3 +173,27 @@ def test_symmetric_tangent_script(tmp_path):
     assert float(rows[0][5]) < 5e-2
     for row in rows:
         assert all(float(c) > 0 for c in row[6].split("/"))
+
+
+def test_contact_corrugation_script():
+    """scripts/contact_corrugation.py: on a sheet of 2 mm triangles, 0.42 mm below the node
+    (contact thickness 0.5 mm), the sampled positions include a vertex, where the six
+    triangles around it are each at 0.42 mm and no other is within 0.5 mm (six barriers), and
+    a triangle's centroid, 0.577 mm from the other triangles' edges sideways (one barrier):
+    the least and greatest sums are b(h) and 6 b(h) of IPC's barrier, written out here.
+    Bad numbers are refused with one line and exit code 2."""
+    import math
+
+    r = run_child([sys.executable, str(ROOT / "scripts" / "contact_corrugation.py"), "--sizes",
+                   "2", "--heights", "0.42", "--samples", "4"],
+                  capture_output=True, text=True, env=_env(), timeout=120, check=False)
+    assert r.returncode == 0, r.stderr[-2000:]
+    row = next(ln for ln in r.stdout.splitlines() if ln.startswith("| 2 | 0.42 |"))
+    least, most, _ = (float(v) for v in row.split("|")[4].split("/"))
+    h, delta = 0.42, 0.5
+    b = -(16e3 / delta) * (h - delta) ** 2 * math.log(h / delta)
+    assert least == pytest.approx(b, rel=1e-3) and most == pytest.approx(6 * b, rel=1e-3)
+    bad = run_child([sys.executable, str(ROOT / "scripts" / "contact_corrugation.py"),
+                     "--heights", "0.6"], capture_output=True, text=True, env=_env(),
+                    timeout=120, check=False)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
