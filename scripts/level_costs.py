@@ -11,8 +11,11 @@ pattern (each a new symbolic analysis), updates solved with the symmetric tangen
 convexified re-solves, and its wall time with the linear solves, the assembly (residuals,
 tangents, energies, the load's work) and the point terms (contact, chordae, hinges) in it;
 then the run's total and the closed coaptation. ``--history`` also prints the finest level's
-steps (weight ``k``, the update's fraction ``alpha``, residual, accepted). ``--out`` writes
-all of it as JSON.
+steps (weight ``k``, the update's fraction ``alpha``, residual, accepted). ``--hot`` also
+records, at each accepted step of every level, where the residual is: the share of ``|F|^2``
+held by the 50 largest nodal forces, the median nodal force, and the largest nodal move of the
+step (mm); and each level's largest nodal distance between its start and its end (README,
+"Where the finest level's steps go"). ``--out`` writes all of it as JSON.
 
 The runs of README "Nested levels" (sessions 31-32) were made with this breakdown. Paths move
 with roundoff by tens of percent (README, "Solving"), so compare codes on several pressures,
@@ -40,6 +43,22 @@ DEMO = Path(mvfem.__file__).parent / "data" / "demo.toml"
 
 #: the rows of the solves of the current run
 LEVELS: list[dict] = []
+#: --hot: where the residual is at each accepted step
+HOT = False
+#: the nodal forces whose share of |F|^2 --hot records
+TOP = 50
+
+
+def _nodal(vec) -> np.ndarray | None:
+    """(N, 3) of a P1 vector's values on rank 0 (None on the other ranks)."""
+    from petsc4py import PETSc
+
+    scatter, full = PETSc.Scatter.toZero(vec)
+    scatter.scatter(vec, full, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD)
+    a = full.array_r.copy().reshape(-1, 3) if MPI.COMM_WORLD.rank == 0 else None
+    scatter.destroy()
+    full.destroy()
+    return a
 
 
 class Recorded(PseudoTransient):
@@ -49,11 +68,38 @@ class Recorded(PseudoTransient):
         pb = self.problem
         pt = pb.point_terms
         a0, g0, p0 = pb.assembly_s, pb.regrowths, (pt.time_s if pt is not None else 0.0)
+        hot, inner = [], self.on_step
+        if HOT:
+            start = _nodal(pb.u.vector)
+            last = [start]
+
+            def on_step(rec, ptc):
+                # at an accepted step b holds F at the new state (its residual was the last
+                # evaluated) and u that state (the load's work leaves it there to roundoff)
+                if rec.accepted:
+                    f, u = _nodal(pb.b), _nodal(pb.u.vector)
+                    if f is not None:
+                        n2 = np.sum(f * f, axis=1)
+                        top = np.sort(n2)[::-1][:TOP].sum()
+                        hot.append({"step": rec.step, "top_share": float(top / max(n2.sum(),
+                                                                                    1e-300)),
+                                    "median_force": float(np.median(np.sqrt(n2))),
+                                    "largest_move_mm": float(np.linalg.norm(u - last[0],
+                                                                            axis=1).max())})
+                        last[0] = u
+                if inner is not None:
+                    inner(rec, ptc)
+            self.on_step = on_step
         t0 = time.perf_counter()
         try:
             return super().run()
         finally:
             h = self.history
+            extra = {}
+            if HOT:
+                end = _nodal(pb.u.vector)
+                extra = {"hot": hot, "start_to_end_mm": None if end is None else
+                         float(np.linalg.norm(end - start, axis=1).max())}
             LEVELS.append({
                 "dofs": int(pb.x.getSize()), "steps": len(h),
                 "refused": sum(not r.accepted for r in h), "growths": pb.regrowths - g0,
@@ -64,7 +110,7 @@ class Recorded(PseudoTransient):
                 # a residual not evaluated (the potential rose, Newton's regime): None
                 "history": [{"k": r.weight, "alpha": r.alpha,
                              "residual": None if np.isnan(r.residual) else r.residual,
-                             "accepted": r.accepted} for r in h]})
+                             "accepted": r.accepted} for r in h], **extra})
 
 
 def close(refine: int, size: float, pressure_kpa: float) -> dict:
@@ -95,10 +141,24 @@ def table(rec: dict, history: bool) -> str:
                      f"{lv['linear_s']:.2f} | {lv['assembly_s']:.2f} | "
                      f"{lv['point_terms_s']:.2f} | {lv['wall_s'] / max(lv['steps'], 1):.3f} |")
     if history and rec["levels"]:
-        lines += ["", "| step | k | alpha | residual | accepted |", "|---:|---:|---:|---:|---|"]
-        for i, h in enumerate(rec["levels"][-1]["history"], 1):
+        last = rec["levels"][-1]
+        hot = {d["step"]: d for d in last.get("hot", [])}
+        head = "| step | k | alpha | residual | accepted |"
+        rule = "|---:|---:|---:|---:|---|"
+        if "hot" in last:
+            head += f" top {TOP} share of F^2 | median nodal force | largest move (mm) |"
+            rule += "---:|---:|---:|"
+        lines += ["", head, rule]
+        for i, h in enumerate(last["history"], 1):
             r = "-" if h["residual"] is None else f"{h['residual']:.3g}"  # not evaluated
-            lines.append(f"| {i} | {h['k']:.3g} | {h['alpha']:.3g} | {r} | {h['accepted']} |")
+            row = f"| {i} | {h['k']:.3g} | {h['alpha']:.3g} | {r} | {h['accepted']} |"
+            if "hot" in last:
+                d = hot.get(i)
+                row += (f" {d['top_share']:.3f} | {d['median_force']:.2g} | "
+                        f"{d['largest_move_mm']:.2g} |" if d else " | | |")
+            lines.append(row)
+        if "hot" in last:
+            lines += ["", f"finest level: start to end at most {last['start_to_end_mm']:.4g} mm"]
     return "\n".join(lines)
 
 
@@ -108,6 +168,8 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=float, default=2.0, help="the demo's mesh size, mm")
     p.add_argument("--pressures", default="16", help="kPa, comma-separated")
     p.add_argument("--history", action="store_true", help="the finest level's steps too")
+    p.add_argument("--hot", action="store_true",
+                   help="where the residual is at each accepted step (see above)")
     p.add_argument("--out", default=None, help="write the records as JSON here")
     a = p.parse_args(argv)
     root = MPI.COMM_WORLD.rank == 0   # (under mpirun: rank 0 prints and writes)
@@ -122,6 +184,8 @@ def main(argv=None) -> int:
         return error(f"--pressures {a.pressures!r}: not numbers")
     if a.out is not None and MPI.COMM_WORLD.bcast(Path(a.out).exists() if root else None):
         return error(f"--out {a.out}: exists; choose another name")
+    global HOT
+    HOT = a.hot
     run_mod.PseudoTransient = Recorded
     records = []
     for pressure in pressures:

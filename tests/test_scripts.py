@@ -135,10 +135,13 @@ def test_level_costs_script(tmp_path):
     with the run's own records (the coarse level's steps in summary ``coarse_start``, the fine
     level's steps and accepted steps in ``newton_iterations`` and ``load_steps``), times that
     add up (linear solves and assembly within the level's wall time), the finest level's
-    history with a row per step; an existing ``--out`` is refused (exit 2)."""
+    history with a row per step; an existing ``--out`` is refused (exit 2). With ``--hot``,
+    every accepted step's record: a share of ``|F|^2`` in (0, 1], moves whose sum bounds the
+    level's start-to-end distance (the triangle inequality), and at the last step a median
+    nodal force below the residual's norm (so the forces are the residual's)."""
     out = tmp_path / "costs.json"
     cmd = [sys.executable, str(ROOT / "scripts" / "level_costs.py"), "--size", "5", "--refine",
-           "1", "--pressures", "16", "--history", "--out", str(out)]
+           "1", "--pressures", "16", "--history", "--hot", "--out", str(out)]
     r = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=600,
                   check=False)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
@@ -153,7 +156,13 @@ def test_level_costs_script(tmp_path):
         assert 0 < lv["linear_s"] + lv["assembly_s"] <= lv["wall_s"]
         assert len(lv["history"]) == lv["steps"]
         assert sum(not h["accepted"] for h in lv["history"]) == lv["refused"]
-    assert f"| {fine['steps']} | " in r.stdout
+        hot = lv["hot"]
+        accepted = [i for i, h in enumerate(lv["history"], 1) if h["accepted"]]
+        assert [d["step"] for d in hot] == accepted
+        assert all(0 < d["top_share"] <= 1 for d in hot)
+        assert 0 < lv["start_to_end_mm"] <= sum(d["largest_move_mm"] for d in hot) + 1e-9
+        assert hot[-1]["median_force"] <= lv["history"][accepted[-1] - 1]["residual"]
+    assert f"| {fine['steps']} | " in r.stdout and "start to end at most" in r.stdout
     again = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=600,
                       check=False)
     assert again.returncode == 2 and "exists" in again.stderr
