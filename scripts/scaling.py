@@ -151,7 +151,7 @@ def main(argv=None) -> int:
     p.add_argument("--refine", type=int, default=0,
                    help="valve: times the mesh is refined (nested levels)")
     p.add_argument("--record", help="append the JSON line to this file")
-    p.add_argument("--all", action="store_true", help="both cases on 1 and 2 processes")
+    p.add_argument("--all", action="store_true", help="the cases on 1 and 2 processes")
     p.add_argument("--cases", default="disk:0.2,valve:1.5,valve:2:2",
                    help="with --all: case:size[:refine],... (default disk:0.2,valve:1.5,"
                         "valve:2:2, the last the demo refined twice)")
@@ -161,14 +161,20 @@ def main(argv=None) -> int:
             cases = []
             for c in args.cases.split(","):
                 name, size, *rest = c.split(":")
-                if name not in ("disk", "valve") or len(rest) > 1:
+                refine = int(rest[0]) if rest else 0
+                if name not in ("disk", "valve") or len(rest) > 1 or \
+                        (refine and name != "valve"):
                     raise ValueError(c)
-                cases.append((name, float(size), int(rest[0]) if rest else 0))
+                cases.append((name, float(size), refine))
         except ValueError:
             print(f"scaling: --cases {args.cases!r}: expected case:size[:refine],... with case "
-                  "disk or valve", file=sys.stderr)
+                  "disk or valve (refine: the valve only)", file=sys.stderr)
             return 2
         return run_all(args.record or "results/scaling.jsonl", cases)
+    if args.refine and args.case != "valve":
+        print("scaling: --refine: the valve only (mesh.refine refines generated valves)",
+              file=sys.stderr)
+        return 2
     size = args.size if args.size is not None else {"disk": 0.2, "valve": 1.5}[args.case]
     return run_one(args.case, size, args.record, args.refine)
 

@@ -67,6 +67,25 @@ def test_scaling_script_on_two_ranks(tmp_path):
     assert abs(row["centre_mm"][2] - w) / w < 0.03
 
 
+def test_scaling_script_refuses_bad_input(tmp_path):
+    """scripts/scaling.py: ``--all`` does not append to (and table) a record that exists, and a
+    case it cannot run (an unknown one, a refined disk) is refused; each with one line and exit
+    code 2, before any run starts."""
+    old = tmp_path / "old.jsonl"
+    old.write_text('{"case": "disk"}\n')
+    script = str(ROOT / "scripts" / "scaling.py")
+    for args in (["--all", "--record", str(old)],
+                 ["--all", "--cases", "cube:1", "--record", str(tmp_path / "a.jsonl")],
+                 ["--all", "--cases", "disk:1:1", "--record", str(tmp_path / "b.jsonl")],
+                 ["--case", "disk", "--refine", "1"]):
+        r = run_child([sys.executable, script, *args], capture_output=True, text=True,
+                      env=_env(), timeout=120, check=False)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, (args, r.stderr)
+        assert r.stdout == ""
+    assert old.read_text() == '{"case": "disk"}\n'
+    assert not (tmp_path / "a.jsonl").exists() and not (tmp_path / "b.jsonl").exists()
+
+
 def test_hard_cases_script_two_cases(tmp_path):
     """scripts/hard_cases.py (issue 7) on two quick cases: the flat disk converges, the folded
     imported valve is refused with one line; the table says so."""
