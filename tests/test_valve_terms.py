@@ -145,6 +145,60 @@ def _two_sheets(gap: float, shift: float = 0.0):
     return view, pts
 
 
+def test_facing_edge_pairs_only_where_the_mesh_is_coarser_than_the_thickness():
+    """Two sheets of 1 mm squares (labels 1 and 2), 0.3 mm apart, the upper shifted by 0.3 mm.
+    With a thickness below the median edge (0.9 mm) the edge pairs are every admissible pair
+    of edges closer than the thickness; with one above it (1.2 mm) the pairs of two interior
+    edges of different sheets are left out, and every other pair kept: within a sheet, or
+    with a sheet's perimeter edge. The expected sets come from a brute force over all edge
+    pairs here (the segment distance by dense sampling, the perimeter from the cells), and
+    the energy's blocks hold exactly the pairs returned."""
+    from mvfem.contact import Contact
+
+    view, x = _two_sheets(0.3, shift=0.3)
+    cells = view.cells
+    e = np.unique(np.sort(np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]]),
+                          axis=1), axis=0)
+    per_cell = np.sort(np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]]),
+                       axis=1)
+    uses = {tuple(r): 0 for r in e}
+    for r in per_cell:
+        uses[tuple(r)] += 1
+    perimeter = np.array([uses[tuple(r)] == 1 for r in e])
+    sheet = np.where(e[:, 0] < 25, 1, 2)
+    t = np.linspace(0.0, 1.0, 201)
+
+    def sampled(a, b):  # distance between two segments by sampling both densely
+        p = x[a[0]] + t[:, None] * (x[a[1]] - x[a[0]])
+        q = x[b[0]] + t[:, None] * (x[b[1]] - x[b[0]])
+        return np.sqrt(((p[:, None, :] - q[None, :, :]) ** 2).sum(-1)).min()
+
+    for delta, facing in ((0.9, True), (1.2, False)):
+        c = Contact(view, delta, 1e5, exclusion=0.2)
+        assert c.facing_edge_pairs is facing
+        i, j, _ = c.edge_pairs(x)
+        got = set(zip(i.tolist(), j.tolist()))
+        want = set()
+        for a in range(len(e)):
+            for b in range(a + 1, len(e)):
+                if len(set(e[a]) | set(e[b])) < 4:
+                    continue  # (edges sharing a node are never pairs)
+                if sampled(e[a], e[b]) >= delta - 1e-3:
+                    continue  # (pairs within roundoff of the thickness are left to the code)
+                # (every other pair is admissible: the reference is this state, and no two
+                # edges sharing no node are within the exclusion, 0.2 mm)
+                if facing or sheet[a] == sheet[b] or perimeter[a] or perimeter[b]:
+                    want.add((a, b))
+        near = {(a, b) for a, b in got if sampled(e[a], e[b]) < delta - 1e-3}
+        assert near == want
+        blk = c(x)
+        m = len(c.active_pairs(x)[0])
+        assert len(blk.nodes) == m + len(got)
+    # the rule has something to leave out: facing interior pairs within 0.9 mm exist
+    assert any(sheet[a] != sheet[b] and not perimeter[a] and not perimeter[b] for a, b in
+               zip(*Contact(view, 0.9, 1e5, exclusion=0.2).edge_pairs(x)[:2]))
+
+
 def test_contact_pushes_sheets_apart_with_the_penalty_pressure():
     """Sheets 0.3 mm apart, one exactly above the other, contact thickness 0.5 mm: a node's
     closest point on the other sheet is the vertex opposite, shared by all ``val`` triangles
