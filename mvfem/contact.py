@@ -681,9 +681,10 @@ class Contact:
         #: node-triangle pairs alone keep two facing leaflets apart between the nodes, and
         #: those edge pairs, half of the closed valve's contact, bend the potential down along
         #: the updates (their curvature outweighed the membrane's along every update that
-        #: climbed on the demo refined twice; without them its finest level took 34-42 steps
-        #: instead of 93-149, README "Edge pairs between facing leaflets"). On coarser meshes
-        #: they are what keeps the leaflets apart between the nodes (without them the 4 mm
+        #: climbed on the demo refined twice; without them its finest level took 34-47
+        #: steps instead of 93-149 at 15.5-17 kPa, README "Edge pairs between facing
+        #: leaflets"). On coarser meshes they are what keeps the leaflets apart between the
+        #: nodes (without them the 4 mm
         #: valves of the hard cases passed through each other). Pairs within a label and
         #: pairs with a boundary edge (free edge, annulus) stay; the step limit checks every
         #: pair of edges whatever this says.

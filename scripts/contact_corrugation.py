@@ -5,17 +5,18 @@
 
 The contact energy (``mvfem.contact``) sums IPC's barrier over every triangle of the other
 surface within the thickness ``delta`` of a node. Over a flat sheet of equilateral triangles
-(edge ``a``) at height ``h`` the distance to the surface is ``h`` wherever the node is, but
-the sum is not: above a vertex all six triangles around it are at ``h`` (six barriers), above
-a triangle's centre on a coarse sheet only that triangle is. So the energy is corrugated at
-the mesh's scale: it pushes nodes toward the other surface's triangle centres, like a
-friction (whether it slows the solver is weighed in README, "Where the finest level's steps
-go": at the closed valve its sideways curvature is far below the membrane's). For each edge ``a`` and height ``h`` the script samples the node's lateral
-position over one cell of the sheet (``samples`` x ``samples`` points) and prints the sum's
-least, greatest and mean value, its spread ``(max - min) / mean``, and the same with the
-pairs merged by closest feature (IPC's point-triangle, point-edge and point-point pairs: each
-face, edge or vertex counted once), which does not remove it. The barrier's stiffness is the
-demo's (16 kPa / delta); the spread does not depend on it.
+(edge ``a``) at height ``h`` the distance to the surface is ``h`` wherever the node is, but the
+sum is not: above a vertex all six triangles around it are at ``h`` (six barriers), above a
+triangle's centre on a coarse sheet only that triangle is. So the energy is corrugated at the
+mesh's scale: it pushes nodes toward the other surface's triangle centres, like a friction
+(whether it slows the solver is weighed in README, "Where the finest level's steps go": at the
+closed valve its sideways curvature is far below the membrane's). For each edge ``a`` and
+height ``h`` the script samples the node's lateral position over one cell of the sheet
+(``samples`` x ``samples`` points) and prints the sum's least, greatest and mean value, its
+spread ``(max - min) / mean``, and the same with the pairs merged by closest feature (IPC's
+point-triangle, point-edge and point-point pairs: each face, edge or vertex counted once),
+which does not remove it. The barrier's stiffness is the demo's (16 kPa / delta); the spread
+does not depend on it.
 """
 
 from __future__ import annotations
