@@ -664,15 +664,22 @@ class Contact:
         self._tol = 1e-3 * max(self._max_edge, 1e-12)
         if view.comm.rank == 0 and len(view.cells):
             c = view.cells
-            self._edges = np.unique(np.sort(np.concatenate([c[:, [0, 1]], c[:, [1, 2]],
-                                                            c[:, [2, 0]]]), axis=1), axis=0)
+            self._edges, of_cell = np.unique(np.sort(np.concatenate(
+                [c[:, [0, 1]], c[:, [1, 2]], c[:, [2, 0]]]), axis=1), axis=0, return_inverse=True)
+            of_cell = of_cell.ravel()  # each cell side's edge (cells' first sides, then ...)
             self._edge_mid_ref = 0.5 * (view.X[self._edges[:, 0]] + view.X[self._edges[:, 1]])
             self._edge_len_ref = np.linalg.norm(view.X[self._edges[:, 1]]
                                                 - view.X[self._edges[:, 0]], axis=1)
+            #: each edge's label (that of a cell it bounds) and whether it bounds one cell
+            self._edge_label = np.zeros(len(self._edges), dtype=np.int64)
+            self._edge_label[of_cell] = np.tile(np.asarray(view.cell_tag, dtype=np.int64), 3)
+            self._edge_boundary = np.bincount(of_cell, minlength=len(self._edges)) == 1
         else:
             self._edges = np.zeros((0, 2), dtype=np.int64)
             self._edge_mid_ref = np.zeros((0, 3))
             self._edge_len_ref = np.zeros(0)
+            self._edge_label = np.zeros(0, dtype=np.int64)
+            self._edge_boundary = np.zeros(0, dtype=bool)
         self._excluded_edges = self._excluded_edge_pairs()
         #: slack of the lists' validity tests against roundoff in the distances, mm
         self._margin = 1e-9 * max(self._max_edge, 1.0)
@@ -684,24 +691,10 @@ class Contact:
         #: climbed on the demo refined twice; without them its finest level took 34-47
         #: steps instead of 93-149 at 15.5-17 kPa, README "Edge pairs between facing
         #: leaflets"). On coarser meshes they are what keeps the leaflets apart between the
-        #: nodes (without them the 4 mm
-        #: valves of the hard cases passed through each other). Pairs within a label and
-        #: pairs with a boundary edge (free edge, annulus) stay; the step limit checks every
-        #: pair of edges whatever this says.
+        #: nodes (without them the 4 mm valves of the hard cases passed through each other).
+        #: Pairs within a label and pairs with a boundary edge (free edge, annulus) stay; the
+        #: step limit checks every pair of edges whatever this says.
         self.facing_edge_pairs = bool(median_edge > self.thickness)
-        if view.comm.rank == 0 and len(self._edges):
-            c = view.cells
-            n = len(view.X) + 1
-            key = np.sort(np.concatenate([c[:, [0, 1]], c[:, [1, 2]], c[:, [2, 0]]]), axis=1)
-            at = np.searchsorted(self._edges[:, 0] * n + self._edges[:, 1],
-                                 key[:, 0] * n + key[:, 1])
-            #: each edge's label (that of a cell it bounds) and whether it bounds one cell
-            self._edge_label = np.zeros(len(self._edges), dtype=np.int64)
-            self._edge_label[at] = np.tile(np.asarray(view.cell_tag, dtype=np.int64), 3)
-            self._edge_boundary = np.bincount(at, minlength=len(self._edges)) == 1
-        else:
-            self._edge_label = np.zeros(0, dtype=np.int64)
-            self._edge_boundary = np.zeros(0, dtype=bool)
 
     def _excluded_edge_pairs(self) -> np.ndarray:
         """Sorted keys ``i * n_edges + j``, ``i < j``, of the edge pairs that never interact:
