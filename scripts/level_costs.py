@@ -49,18 +49,6 @@ HOT = False
 TOP = 50
 
 
-def _nodal(vec) -> np.ndarray | None:
-    """(N, 3) of a P1 vector's values on rank 0 (None on the other ranks)."""
-    from petsc4py import PETSc
-
-    scatter, full = PETSc.Scatter.toZero(vec)
-    scatter.scatter(vec, full, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD)
-    a = full.array_r.copy().reshape(-1, 3) if MPI.COMM_WORLD.rank == 0 else None
-    scatter.destroy()
-    full.destroy()
-    return a
-
-
 class Recorded(PseudoTransient):
     """A pseudo-time solve that records what it cost (the run's solves are made as these)."""
 
@@ -70,14 +58,15 @@ class Recorded(PseudoTransient):
         a0, g0, p0 = pb.assembly_s, pb.regrowths, (pt.time_s if pt is not None else 0.0)
         hot, inner = [], self.on_step
         if HOT:
-            start = _nodal(pb.u.vector)
+            gather = pt.view.gather  # (N, 3) nodal values on rank 0, None elsewhere
+            start = gather(pb.u.vector.array_r)
             last = [start]
 
             def on_step(rec, ptc):
                 # at an accepted step b holds F at the new state (its residual was the last
                 # evaluated) and u that state (the load's work leaves it there to roundoff)
                 if rec.accepted:
-                    f, u = _nodal(pb.b), _nodal(pb.u.vector)
+                    f, u = gather(pb.b.array_r), gather(pb.u.vector.array_r)
                     if f is not None:
                         n2 = np.sum(f * f, axis=1)
                         top = np.sort(n2)[::-1][:TOP].sum()
@@ -97,7 +86,7 @@ class Recorded(PseudoTransient):
             h = self.history
             extra = {}
             if HOT:
-                end = _nodal(pb.u.vector)
+                end = gather(pb.u.vector.array_r)
                 extra = {"hot": hot, "start_to_end_mm": None if end is None else
                          float(np.linalg.norm(end - start, axis=1).max())}
             LEVELS.append({
