@@ -722,14 +722,19 @@ class Contact:
         X, cells = self.view.X, self.view.cells
         if len(self.slaves) == 0 or len(cells) == 0:
             return np.zeros(0, dtype=np.int64)
-        node_cells = [[] for _ in range(len(X))]
-        for t, tri in enumerate(cells):
-            for i in tri:
-                node_cells[i].append(t)
-        near = cKDTree(X).query_ball_point(X[self.slaves], self.exclusion)
-        keys = [s * len(cells) + np.unique(np.concatenate([node_cells[j] for j in nb]))
-                for s, nb in zip(self.slaves, near)]
-        return np.unique(np.concatenate(keys).astype(np.int64))
+        # each node's cells, grouped by node (a CSR of the incidence)
+        flat = cells.ravel()
+        order = np.argsort(flat, kind="stable")
+        node_cells = (order // 3).astype(np.int64)
+        start = np.r_[0, np.cumsum(np.bincount(flat, minlength=len(X)))]
+        near = cKDTree(X[self.slaves]).sparse_distance_matrix(
+            cKDTree(X), self.exclusion, output_type="ndarray")
+        i, j = near["i"].astype(np.int64), near["j"].astype(np.int64)
+        # every (slave of i, cell of node j): the cells of node j, one row per pair
+        count = start[j + 1] - start[j]
+        first = np.repeat(start[j] - np.r_[0, np.cumsum(count)[:-1]], count)
+        t = node_cells[first + np.arange(count.sum())]
+        return np.unique(self.slaves[np.repeat(i, count)].astype(np.int64) * len(cells) + t)
 
     # --- reporting ----------------------------------------------------------------------------
     def penetration(self, x: np.ndarray) -> dict:

@@ -1752,6 +1752,26 @@ def test_admissible_edges_look_up_is_the_definition(valve_view):
     assert not c._admissible_edges(i[:5], i[:5]).any()
 
 
+@pytest.mark.parametrize("exclusion", [None, 4.0])
+def test_admissible_pairs_look_up_is_the_definition(valve_view, exclusion):
+    """The look-up of excluded node-triangle pairs gives, over every pair of a contact node
+    and a triangle of the valve, what the definition does: a vertex of the triangle within
+    ``exclusion`` of the node in the reference surface (the default, and 4 mm, beyond the
+    3 mm cells' first ring)."""
+    from mvfem.contact import Contact
+
+    view, _ = valve_view
+    kw = {} if exclusion is None else {"exclusion": exclusion}
+    c = Contact(view, 0.5, 3.2e4, **kw)
+    X, cells = view.X, view.cells
+    s, t = np.repeat(c.slaves, len(cells)), np.tile(np.arange(len(cells)), len(c.slaves))
+    near = (np.linalg.norm(X[cells][None, :, :, :] - X[c.slaves][:, None, None, :], axis=3)
+            <= c.exclusion).any(axis=2).ravel()
+    assert np.array_equal(c._admissible(s, t), ~near)
+    # the second ring counts at 4 mm: more than the node's own cells
+    assert near.sum() > (3 if exclusion is None else 6) * len(c.slaves)
+
+
 
 def test_point_terms_jacobian_is_the_sum_of_the_free_entries_of_the_blocks(monkeypatch):
     """add_jacobian adds to the matrix the blocks' stiffness summed over its free dofs, and no
