@@ -468,6 +468,31 @@ def test_refined_nodes_lie_on_the_curved_surface(refined):
         assert 3.0 < (a1 - a0) / (a2 - a1) < 5.0, (a0, a1, a2)
 
 
+def test_levels_reuse_the_gmsh_mesh_of_the_same_valve():
+    """A refined valve made right after another level of the same valve splits that gmsh
+    mesh instead of meshing again (nested levels), to the same mesh as a fresh one; any other
+    parameter meshes again."""
+    import importlib
+
+    valve_module = importlib.import_module("mvfem.meshes.valve")  # (the package: the function)
+
+    def arrays(v):
+        return v.mesh.geometry.x.copy(), v.mesh.geometry.dofmap.array.copy()
+
+    kw = dict(size=4.0, free_edge_size=2.0)
+    valve_module._LAST_MESH.clear()
+    fresh = valve(MPI.COMM_SELF, refine=1, **kw)
+    assert not fresh.info["gmsh_reused"] and fresh.info["time_s"]["gmsh"] > 0
+    valve(MPI.COMM_SELF, refine=0, **kw)
+    again = valve(MPI.COMM_SELF, refine=1, **kw)
+    assert again.info["gmsh_reused"] and again.info["time_s"]["gmsh"] == 0.0
+    for a, b in zip(arrays(fresh), arrays(again)):
+        assert np.array_equal(a, b)
+    assert np.array_equal(fresh.insertion_points, again.insertion_points)
+    other = valve(MPI.COMM_SELF, refine=1, anterior_height=20.0, **kw)
+    assert not other.info["gmsh_reused"] and other.info["cells"] != fresh.info["cells"]
+
+
 def test_refine_out_of_range():
     with pytest.raises(ValueError, match="refine"):
         valve(MPI.COMM_WORLD, size=4.0, free_edge_size=2.0, refine=5)
