@@ -125,8 +125,7 @@ def transfer(coarse, fine, scales=SCALES) -> dict:
         # crosses: offsets up to the sagitta of coarse facets, 0.3 mm on the 5 mm valve,
         # against leaflets ~0.15 mm apart in contact) on the deformed coarse surface
         def crossings(U):
-            return (fine.contact.penetration(fv.X + U)["intersections"]
-                    if fine.contact is not None else 0)
+            return fine.contact.intersections(fv.X + U)[1] if fine.contact is not None else 0
 
         for offsets in (True, False):
             Uf, dist = transfer_nodes(cv.X, cv.cells, Uc, fv.X, offsets=offsets)
