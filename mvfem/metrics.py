@@ -79,25 +79,22 @@ def _node_tags(cells, cell_tag, n) -> np.ndarray:
 
 def _section(x, cells, flags, origin, normal):
     """Segments of the surface's trace in a plane: (k, 2, 3) end points and (k,) flags (True
-    when both crossed edges have a flagged end)."""
+    when both crossed edges have a flagged end), one per triangle the plane cuts, in the
+    triangles' order, each from its first crossed edge (of 01, 12, 20) to its second."""
     d = (x - origin) @ normal
     neg = d[cells] < 0
-    cells = cells[neg.any(axis=1) & ~neg.all(axis=1)]  # only the triangles the plane cuts
-    segs, fl = [], []
-    for tri in cells:
-        pts, f = [], []
-        for i, j in ((0, 1), (1, 2), (2, 0)):
-            a, b = tri[i], tri[j]
-            if (d[a] < 0) != (d[b] < 0):
-                t = d[a] / (d[a] - d[b])
-                pts.append(x[a] + t * (x[b] - x[a]))
-                f.append(flags[a] or flags[b])
-        if len(pts) == 2:
-            segs.append(pts)
-            fl.append(f[0] and f[1])
-    if not segs:
+    cut = neg.any(axis=1) & ~neg.all(axis=1)  # only the triangles the plane cuts
+    if not cut.any():
         return np.zeros((0, 2, 3)), np.zeros(0, dtype=bool)
-    return np.array(segs), np.array(fl)
+    cells, neg = cells[cut], neg[cut]
+    nxt = [1, 2, 0]
+    # a cut triangle has one vertex on one side and two on the other: two edges cross
+    row, k = np.nonzero(neg != neg[:, nxt])  # row-major: each triangle's two edges in order
+    a, b = cells[row, k], cells[row, np.asarray(nxt)[k]]
+    t = d[a] / (d[a] - d[b])
+    pts = x[a] + t[:, None] * (x[b] - x[a])
+    f = (flags[a] | flags[b]).reshape(-1, 2)
+    return pts.reshape(-1, 2, 3), f[:, 0] & f[:, 1]
 
 
 def _inside_polygon(ring: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:

@@ -871,6 +871,35 @@ def test_segment_distance_matches_dense_sampling():
     assert np.all(dense - d < 2.5e-3)              # ... the samples approach it
 
 
+def test_section_of_a_tilted_strip_is_its_cut_line():
+    """The plane y = 0.3 cuts the rectangle [1, 8] x [-5, 5] tilted about the x axis (so that
+    its points have z = 0.5 y) along the segment x in [1, 8], y = 0.3, z = 0.15: the trace's
+    segments lie on it, one per cut triangle (none through a node: 0.3 is off the grid),
+    end to end (their x intervals tile [1, 8] with each grid column cut by 2 triangles); with
+    the nodes at x >= 4.5 flagged, a segment is flagged where both its crossed edges have a
+    flagged end: every segment but those with an end on an edge of the grid column at x =
+    3.625 or left of it (the diagonals of the column between 3.625 and 4.5 reach 4.5)."""
+    from mvfem.metrics import _section
+
+    x, cells = _strip(1.0, 8.0, -5, 5, 0.0, n=8)
+    x[:, 2] = 0.5 * x[:, 1]
+    flags = x[:, 0] >= 4.5 - 1e-12  # the grid column at x = 4.5 and beyond
+    normal = np.array([0.0, 1.0, 0.0])
+    segs, fl = _section(x, cells, flags, np.array([0.0, 0.3, 0.0]), normal)
+    assert segs.shape == (16, 2, 3)  # 8 columns, 2 triangles each
+    assert np.allclose(segs[:, :, 1], 0.3) and np.allclose(segs[:, :, 2], 0.15)
+    lo, hi = segs[:, :, 0].min(axis=1), segs[:, :, 0].max(axis=1)
+    order = np.argsort(lo)
+    assert lo[order][0] == pytest.approx(1.0) and hi[order][-1] == pytest.approx(8.0)
+    assert np.allclose(lo[order][1:], hi[order][:-1])  # end to end, no overlap
+    assert (hi - lo).sum() == pytest.approx(7.0)
+    # (the grid columns are at 1 + 0.875 k: an end at x <= 3.625 lies on an edge with no
+    # node at x >= 4.5, an end beyond it on a diagonal or edge that has one)
+    assert np.array_equal(fl, lo > 3.625 + 1e-9) and fl.sum() == 9
+    # the plane through no triangle
+    assert _section(x, cells, flags, np.array([0.0, 6.0, 0.0]), normal)[0].shape == (0, 2, 3)
+
+
 def test_leak_gap_of_a_slot_and_of_overlapping_leaflets():
     """Sections every 0.25 mm across y in [-5, 5] (L = 10 mm); contact thickness 0.5 mm.
     A slot of width w = 2 between two coplanar leaflets leaks (w - 0.5) L = 15 mm^2; the
