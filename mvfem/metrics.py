@@ -40,6 +40,8 @@ __all__ = ["valve_metrics", "coapting_nodes", "orifice_area", "leak_gap_area",
 COAPT_SLACK = 1.5
 #: raster size of the orifice area (mm)
 PIXEL = 0.05
+#: pixels of the triangles' boxes tested at once by orifice_area
+CHUNK = 1 << 21
 #: spacing of the sections of the leak gap area (mm)
 SECTION_STEP = 0.25
 #: an open piece of the projected annulus smaller than this (mm^2) is not counted as an
@@ -130,26 +132,37 @@ def orifice_area(x, cells, annulus_loop, centre, axis, grow: float, components: 
     nx, ny = (np.ceil((hi - lo) / PIXEL)).astype(int)
     gx = lo[0] + (np.arange(nx) + 0.5) * PIXEL
     gy = lo[1] + (np.arange(ny) + 0.5) * PIXEL
-    X, Y = np.meshgrid(gx, gy, indexing="ij")
     inside = _inside_polygon(ring, gx, gy)
     covered = np.zeros((nx, ny), dtype=bool)
     q = P(x)[cells]  # (C, 3, 2)
-    i0 = np.floor((q.min(axis=1) - lo) / PIXEL).astype(int)
-    i1 = np.ceil((q.max(axis=1) - lo) / PIXEL).astype(int)
-    for (a, b, c), (ia, ja), (ib, jb) in zip(q, i0, i1):
-        ia, ja = max(ia, 0), max(ja, 0)
-        ib, jb = min(ib, nx), min(jb, ny)
-        if ib <= ia or jb <= ja:
-            continue
-        px, py = X[ia:ib, ja:jb], Y[ia:ib, ja:jb]
-        v0, v1 = b - a, c - a
-        den = v0[0] * v1[1] - v0[1] * v1[0]
-        if abs(den) < 1e-14:
-            continue
-        wx, wy = px - a[0], py - a[1]
-        s = (wx * v1[1] - wy * v1[0]) / den
-        t = (v0[0] * wy - v0[1] * wx) / den
-        covered[ia:ib, ja:jb] |= (s >= 0) & (t >= 0) & (s + t <= 1)
+    # each triangle's box of pixels, clipped to the grid
+    ia, ja = np.maximum(np.floor((q.min(axis=1) - lo) / PIXEL).astype(int), 0).T
+    ib, jb = np.ceil((q.max(axis=1) - lo) / PIXEL).astype(int).T
+    ib, jb = np.minimum(ib, nx), np.minimum(jb, ny)
+    a, v0, v1 = q[:, 0], q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]
+    den = v0[:, 0] * v1[:, 1] - v0[:, 1] * v1[:, 0]
+    keep = np.flatnonzero((ib > ia) & (jb > ja) & (np.abs(den) >= 1e-14))
+    w, h = ib[keep] - ia[keep], jb[keep] - ja[keep]
+    # every (triangle, pixel of its box) at once, in chunks of about CHUNK pixels
+    ends = np.cumsum(w * h)
+    first = 0
+    while first < len(keep):
+        last = int(np.searchsorted(ends, (ends[first - 1] if first else 0) + CHUNK,
+                                   side="right"))
+        last = max(last, first + 1)
+        sel = keep[first:last]
+        n = w[first:last] * h[first:last]
+        c = np.repeat(np.arange(len(sel)), n)
+        k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+        hc = h[first:last][c]
+        i, j = ia[sel][c] + k // hc, ja[sel][c] + k % hc
+        t_ = sel[c]
+        wx, wy = gx[i] - a[t_, 0], gy[j] - a[t_, 1]
+        s = (wx * v1[t_, 1] - wy * v1[t_, 0]) / den[t_]
+        t = (v0[t_, 0] * wy - v0[t_, 1] * wx) / den[t_]
+        hit = (s >= 0) & (t >= 0) & (s + t <= 1)
+        covered[i[hit], j[hit]] = True
+        first = last
     r = int(np.ceil(grow / PIXEL))
     if r > 0:
         yy, xx = np.mgrid[-r:r + 1, -r:r + 1]

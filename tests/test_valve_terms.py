@@ -101,10 +101,13 @@ def test_closest_point_on_triangles_matches_brute_force():
         assert np.all(bary[i] >= -1e-12) and bary[i].sum() == pytest.approx(1.0)
 
 
-def test_orifice_area_of_a_disk_partly_covered():
+def test_orifice_area_of_a_disk_partly_covered(monkeypatch):
     """Annulus = circle of radius 10 (area 100 pi); a square of side 10 at the centre covers
     100 mm^2 of it: open area 100 pi - 100; grown by 0.5 mm the square covers 11^2 - (4 -
-    pi) 0.25 mm^2 more (rounded corners)."""
+    pi) 0.25 mm^2 more (rounded corners). The pixels tested in chunks smaller than one
+    triangle's box give the same areas."""
+    from mvfem import metrics
+
     t = np.linspace(0, 2 * np.pi, 2000, endpoint=False)
     ring = np.c_[10 * np.cos(t), 10 * np.sin(t), np.zeros_like(t)]
     x = np.array([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], dtype=float)
@@ -116,6 +119,9 @@ def test_orifice_area_of_a_disk_partly_covered():
     assert grown == pytest.approx(100 * np.pi - (121 - (4 - np.pi) * 0.25), rel=5e-3)
     assert orifice_area(x, cells[:0], ring, np.zeros(3), axis, 0.0) == pytest.approx(
         100 * np.pi, rel=2e-3)
+    monkeypatch.setattr(metrics, "CHUNK", 1000)
+    assert orifice_area(x, cells, ring, np.zeros(3), axis, 0.0) == open_area
+    assert orifice_area(x, cells, ring, np.zeros(3), axis, 0.5) == grown
 
 
 def _two_sheets(gap: float, shift: float = 0.0):
