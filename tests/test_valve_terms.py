@@ -1508,6 +1508,28 @@ def test_contact_lists_find_the_pairs_of_a_full_search(valve_view, compiled, mon
     assert np.array_equal(got[0], i[d < 0.5]) and np.array_equal(got[1], j[d < 0.5])
 
 
+def test_a_report_reach_neither_patches_nor_rebuilds_the_lists(valve_view):
+    """The coapting nodes' reach (1.5 thicknesses, metrics.coapting_nodes) at a state where
+    the lists hold it as they are uses them; at states moved beyond that (and beyond the
+    lists of the thickness too), it searches the node-triangle pairs: no list is patched or
+    built, and the pairs are the full search's each time."""
+    from mvfem.contact import Contact
+
+    view, closing = valve_view
+    cached = Contact(view, 0.5, 3.2e4)
+    full = Contact(view, 0.5, 3.2e4, skin=0.0)
+    x0 = closing(0.3, 5.1)
+    cached.active_pairs(x0)
+    assert (cached.list_builds, cached.list_patches) == (1, 0)
+    moved = [x0, closing(0.3, 5.4), closing(0.3, 6.7)]  # by < 0.125 mm, ~0.2 mm, > 1 mm
+    assert np.linalg.norm(moved[1] - x0, axis=1).max() > 0.125
+    for x in moved:
+        for a, b in zip(cached.active_pairs(x, within=0.75), full.active_pairs(x, within=0.75)):
+            assert np.array_equal(a, b)
+        assert len(full.active_pairs(x, within=0.75)[0]) > len(full.active_pairs(x)[0])
+    assert (cached.list_builds, cached.list_patches) == (1, 0)
+
+
 @pytest.mark.parametrize("compiled", [True, False])
 def test_contact_lists_are_patched_where_few_nodes_moved(valve_view, compiled, monkeypatch):
     """A node carried 1.3-1.7 mm onto a triangle of the other leaflet beyond the lists' 1.5
