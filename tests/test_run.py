@@ -42,8 +42,13 @@ def test_outputs_and_equilibrium(tmp_path):
                 "pressure_Pa", "max_displacement_mm", "max_penetration_mm", "timing", "probes",
                 "regions"):
         assert key in s
+    t = s["timing"]
     for key in ("assembly_s", "linear_solve_s", "contact_s", "other_s", "reference_step_s"):
-        assert s["timing"][key] >= 0
+        assert t[key] >= 0
+    assert t["coarse_start_s"] == 0.0 and t["reference_steps"] == pytest.approx(
+        s["wall_time_s"] / t["reference_step_s"], rel=1e-12)
+    assert t["assembly_s"] + t["linear_solve_s"] + t["contact_s"] + t["other_s"] == \
+        pytest.approx(s["wall_time_s"], rel=1e-12)
     assert s["converged"] and s["equilibrium_residual"] < 1e-7
     assert s["pressure_Pa"] == 16e3
     # the centre of an axisymmetric inflation moves (almost) straight up
@@ -853,6 +858,11 @@ def test_nested_levels_close_a_refined_valve(tmp_path):
     assert 4 * seq["cells"] == s["cells"] and "coarser" not in seq
     assert 0.0 < seq["max_distance_mm"] < 0.5
     assert s["valve"]["regurgitant_orifice_area_mm2"] == 0.0
+    # the wall time splits into this level's parts, the coarse start's and the rest
+    t = s["timing"]
+    assert t["coarse_start_s"] == seq["wall_time_s"] > 0 and t["other_s"] > 0
+    assert t["assembly_s"] + t["linear_solve_s"] + t["contact_s"] + t["coarse_start_s"] + \
+        t["other_s"] == pytest.approx(s["wall_time_s"], rel=1e-12)
 
 
 @pytest.mark.parametrize("changes", [{"mesh.refine": 1}, {"solver.coarse_start": 8.0}])
