@@ -41,7 +41,7 @@ COAPT_SLACK = 1.5
 #: raster size of the orifice area (mm)
 PIXEL = 0.05
 #: pixels of the triangles' boxes tested at once by orifice_area
-CHUNK = 1 << 21
+CHUNK = 1 << 20
 #: spacing of the sections of the leak gap area (mm)
 SECTION_STEP = 0.25
 #: an open piece of the projected annulus smaller than this (mm^2) is not counted as an
@@ -143,7 +143,8 @@ def orifice_area(x, cells, annulus_loop, centre, axis, grow: float, components: 
     den = v0[:, 0] * v1[:, 1] - v0[:, 1] * v1[:, 0]
     keep = np.flatnonzero((ib > ia) & (jb > ja) & (np.abs(den) >= 1e-14))
     w, h = ib[keep] - ia[keep], jb[keep] - ja[keep]
-    # every (triangle, pixel of its box) at once, in chunks of about CHUNK pixels
+    # every (triangle, pixel of its box) at once, in chunks of about CHUNK pixels (or one
+    # triangle's box, where larger)
     ends = np.cumsum(w * h)
     first = 0
     while first < len(keep):
