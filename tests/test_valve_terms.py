@@ -1509,10 +1509,11 @@ def test_contact_lists_find_the_pairs_of_a_full_search(valve_view, compiled, mon
 
 
 def test_a_report_reach_neither_patches_nor_rebuilds_the_lists(valve_view):
-    """The coapting nodes' reach (1.5 thicknesses, metrics.coapting_nodes) at a state where
-    the lists hold it as they are uses them; at states moved beyond that (and beyond the
-    lists of the thickness too), it searches the node-triangle pairs: no list is patched or
-    built, and the pairs are the full search's each time."""
+    """The coapting nodes' reach (1.5 thicknesses, metrics.coapting_nodes) at states where
+    the lists hold it as they are (no node moved by half of radius 1.5 mm less the reach,
+    0.375 mm) uses them; at a state moved beyond that (beyond the lists of the thickness
+    too), it searches the node-triangle pairs: no list is patched or built, and the pairs
+    are the full search's each time."""
     from mvfem.contact import Contact
 
     view, closing = valve_view
@@ -1521,8 +1522,10 @@ def test_a_report_reach_neither_patches_nor_rebuilds_the_lists(valve_view):
     x0 = closing(0.3, 5.1)
     cached.active_pairs(x0)
     assert (cached.list_builds, cached.list_patches) == (1, 0)
-    moved = [x0, closing(0.3, 5.4), closing(0.3, 6.7)]  # by < 0.125 mm, ~0.2 mm, > 1 mm
-    assert np.linalg.norm(moved[1] - x0, axis=1).max() > 0.125
+    moved = [x0, closing(0.3, 5.4), closing(0.3, 6.7)]
+    assert cached.thickness + cached.skin == 1.5
+    assert 0.1 < np.linalg.norm(moved[1] - x0, axis=1).max() < 0.37
+    assert np.linalg.norm(moved[2] - x0, axis=1).max() > 1.0
     for x in moved:
         for a, b in zip(cached.active_pairs(x, within=0.75), full.active_pairs(x, within=0.75)):
             assert np.array_equal(a, b)
