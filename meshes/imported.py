@@ -376,8 +376,9 @@ def _check_intersections(points, tri, where: str) -> None:
     that start apart (the crossing tests ignore pairs that were close in the open valve)."""
     from scipy.spatial import cKDTree
 
-    edges = np.unique(np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]),
-                              axis=1), axis=0)
+    from .refine import cell_edges
+
+    edges = cell_edges(tri)[0]
     if len(edges) == 0:
         return
     x = points[tri]

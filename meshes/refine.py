@@ -10,7 +10,18 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["split", "split_edges"]
+__all__ = ["cell_edges", "split", "split_edges"]
+
+
+def cell_edges(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (k, 2) unique edges (sorted pairs, in lexicographic order) of the triangles
+    ``cells`` (m, 3), and (3, m) each cell side's edge: row 0 the sides 0-1, row 1 the sides
+    1-2, row 2 the sides 2-0 (an edge bounding one cell is on the boundary:
+    ``np.bincount(sides.ravel()) == 1``)."""
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
+    e = np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]])
+    edges, inverse = np.unique(np.sort(e, axis=1), axis=0, return_inverse=True)
+    return edges, inverse.reshape(3, -1)
 
 
 def split(cells: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -23,9 +34,8 @@ def split(cells: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
         then the middle one), each oriented as its parent.
     """
     cells = np.asarray(cells, dtype=np.int64)
-    e = np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]])
-    edges, inverse = np.unique(np.sort(e, axis=1), axis=0, return_inverse=True)
-    m01, m12, m20 = n_points + inverse.reshape(3, -1)
+    edges, sides = cell_edges(cells)
+    m01, m12, m20 = n_points + sides
     v0, v1, v2 = cells.T
     new = np.concatenate([np.stack([v0, m01, m20], axis=1), np.stack([m01, v1, m12], axis=1),
                           np.stack([m20, m12, v2], axis=1), np.stack([m01, m12, m20], axis=1)])

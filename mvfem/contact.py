@@ -663,9 +663,9 @@ class Contact:
         #: crossing tests' tolerance: 1e-3 of the longest edge
         self._tol = 1e-3 * max(self._max_edge, 1e-12)
         if view.comm.rank == 0 and len(view.cells):
-            c = view.cells
-            self._edges, of_cell = np.unique(np.sort(np.concatenate(
-                [c[:, [0, 1]], c[:, [1, 2]], c[:, [2, 0]]]), axis=1), axis=0, return_inverse=True)
+            from mvfem.meshes.refine import cell_edges
+
+            self._edges, of_cell = cell_edges(view.cells)
             of_cell = of_cell.ravel()  # each cell side's edge (cells' first sides, then ...)
             self._edge_mid_ref = 0.5 * (view.X[self._edges[:, 0]] + view.X[self._edges[:, 1]])
             self._edge_len_ref = np.linalg.norm(view.X[self._edges[:, 1]]

@@ -107,10 +107,10 @@ def _leaflet_nodes(raw, value: int) -> np.ndarray:
 
 def _interior(raw, nodes: np.ndarray) -> np.ndarray:
     """Nodes off the boundary (neither annulus nor free edge)."""
-    t = raw.triangles
-    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    u, c = np.unique(e, axis=0, return_counts=True)
-    boundary = np.unique(u[c == 1])
+    from mvfem.meshes.refine import cell_edges
+
+    u, sides = cell_edges(raw.triangles)
+    boundary = np.unique(u[np.bincount(sides.ravel(), minlength=len(u)) == 1])
     return np.setdiff1d(nodes, boundary)
 
 

@@ -324,9 +324,11 @@ def _height_fraction(X, annulus_nodes, free_nodes):
 
 
 def _edge_counts(tri: np.ndarray):
-    e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
-    edges, counts = np.unique(e, axis=0, return_counts=True)
-    return edges, counts
+    """The triangles' unique edges and how many triangles each bounds."""
+    from mvfem.meshes.refine import cell_edges
+
+    edges, sides = cell_edges(tri)
+    return edges, np.bincount(sides.ravel(), minlength=len(edges))
 
 
 def _chain(edges: np.ndarray) -> list[np.ndarray]:
