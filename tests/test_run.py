@@ -865,6 +865,38 @@ def test_nested_levels_close_a_refined_valve(tmp_path):
         t["other_s"] == pytest.approx(s["wall_time_s"], rel=1e-12)
 
 
+def test_solve_runs_openblas_on_one_thread(monkeypatch):
+    """A run's solves, its coarser levels' included, see OpenBLAS on one thread (whose idle
+    threads would spin on the kernels' second core: mvfem.run.solve), and the caller's
+    thread count is back afterwards."""
+    import numpy.linalg  # noqa: F401  (loads the BLAS)
+
+    from mvfem import kernels
+    from mvfem.scene import load_scene
+    from mvfem.solver import PseudoTransient
+
+    lib = kernels._openblas()
+    assert lib is not None, "no OpenBLAS in this process"
+    before = lib.openblas_get_num_threads()
+    lib.openblas_set_num_threads(2)
+    n = lib.openblas_get_num_threads()   # (2, or 1 on one core)
+    seen, run = [], PseudoTransient.run
+
+    def counted(self):
+        seen.append(lib.openblas_get_num_threads())
+        return run(self)
+
+    monkeypatch.setattr(PseudoTransient, "run", counted)
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    try:
+        r = solve(scene.with_changes({"mesh.size": 5.0, "mesh.refine": 1}), progress=False,
+                  write=False)
+        assert r.converged and seen == [1, 1]     # the coarse level, then the scene's
+        assert lib.openblas_get_num_threads() == n
+    finally:
+        lib.openblas_set_num_threads(before)
+
+
 @pytest.mark.parametrize("changes", [{"mesh.refine": 1}, {"solver.coarse_start": 8.0}])
 def test_coarser_levels_get_their_own_step_budget(monkeypatch, changes):
     """``solver.max_steps`` bounds the scene's own (finest) level: a coarser level of a nested

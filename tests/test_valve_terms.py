@@ -1353,6 +1353,50 @@ def test_kernel_threads_give_the_results_of_one():
     assert one[-3].size > 4096 * 9      # the rows were built on the parallel path
 
 
+_IDLE = """
+import os, time
+import numpy as np
+
+def gomp():
+    return any("libgomp" in line for line in open("/proc/self/maps"))
+
+import mvfem
+before = gomp()
+from mvfem import contact, kernels  # (PETSc: libgomp loads)
+assert kernels.load() is not None and kernels.threads() == 2
+K = np.random.default_rng(0).standard_normal((20000, 12, 12))
+contact.project_psd(K + K.transpose(0, 2, 1))  # a parallel loop: the team is up
+t0 = time.process_time()
+time.sleep(0.5)
+print(before, gomp(), os.environ.get("OMP_WAIT_POLICY"), time.process_time() - t0)
+"""
+
+
+def _idle_cpu(**env) -> tuple[bool, bool, str, float]:
+    import os
+    import subprocess
+    import sys
+
+    base = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    out = subprocess.run([sys.executable, "-c", _IDLE], env={**base, "MVFEM_THREADS": "2", **env},
+                         capture_output=True, text=True, timeout=120, check=True).stdout.split()
+    return out[0] == "True", out[1] == "True", out[2], float(out[3])
+
+
+def test_openmp_threads_sleep_when_idle_unless_told_otherwise():
+    """Importing mvfem sets a passive OpenMP wait policy (mvfem._passive_openmp) before any
+    of its modules loads PETSc, and with it libgomp: an idle team's threads sleep instead of
+    spinning on the other core, where a second run or OpenBLAS needs it (two demo runs side
+    by side: 2.2x per step). A process sleeping after a parallel loop then uses no CPU; with
+    the user's ``OMP_WAIT_POLICY=active``, kept, its idle thread spins through the sleep:
+    the runtime reads the policy when it loads."""
+    before, after, policy, cpu = _idle_cpu()
+    assert not before and after and policy == "passive"
+    assert cpu < 0.1
+    before, after, policy, cpu = _idle_cpu(OMP_WAIT_POLICY="active")
+    assert policy == "active" and cpu > 0.3
+
+
 def test_one_blas_thread_inside_and_restored_after():
     """The PSD projection runs OpenBLAS (make setup installs it) on one thread
     (mvfem.kernels.one_blas_thread) and gives its thread count back afterwards, also when
