@@ -16,7 +16,8 @@ def _passive_openmp() -> None:
     libgomp); hence here, before any of mvfem's modules imports PETSc. On 2 cores a run alone
     is as fast either way (the demo refined twice 36.3-36.9 s against 36.4-37.6 s), but two
     runs side by side, each on two kernel threads, spun against each other: the demo took
-    0.066-0.076 s a step against 0.031-0.032 s passive (README "Nested levels", session 36).
+    0.066-0.076 s a step against 0.031-0.032 s passive (README "Threads that wait, asleep",
+    session 36).
     A script that imports dolfinx or petsc4py before mvfem keeps the runtime's default."""
     if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
         os.environ["OMP_WAIT_POLICY"] = "passive"

@@ -602,11 +602,11 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
         case the last converged state is what the outputs show.
 
     OpenBLAS runs on one thread meanwhile (:func:`mvfem.kernels.one_blas_thread`; its count
-    is given back afterwards): its idle threads spin (``sched_yield``) on the core that the
-    compiled kernels' second thread needs. On 2 cores that cost the demo a fifth of its time
-    (0.034 against 0.027 s a step) and its twice-refined valve a tenth, and MUMPS's
-    factorisation of the 28,548-dof tangent is no slower on one thread (0.45 against 0.49 s
-    alone; README "Nested levels", session 36).
+    is given back afterwards): its idle thread spins (``sched_yield``) between MUMPS's calls,
+    on the core that the compiled kernels' second thread or another run needs. MUMPS's
+    factorisation of the twice-refined demo's 28,548-dof tangent is no slower on one thread
+    (0.44-0.46 against 0.47-0.51 s), a run alone costs the same a step, and the CPU it burns
+    falls by a third (README "Threads that wait, asleep", session 36).
     """
     with kernels.one_blas_thread():
         return _solve(scene, out, comm, progress, write, initial, outputs)
