@@ -1373,13 +1373,16 @@ print(before, gomp(), os.environ.get("OMP_WAIT_POLICY"), time.process_time() - t
 
 
 def _idle_cpu(**env) -> tuple[bool, bool, str, float]:
+    """(libgomp loaded by ``import mvfem``, loaded after the kernels, the policy, CPU seconds
+    of a 0.5 s sleep after a parallel loop) in a fresh process with ``env``."""
     import os
-    import subprocess
     import sys
 
+    from conftest import run_child
+
     base = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
-    out = subprocess.run([sys.executable, "-c", _IDLE], env={**base, "MVFEM_THREADS": "2", **env},
-                         capture_output=True, text=True, timeout=120, check=True).stdout.split()
+    out = run_child([sys.executable, "-c", _IDLE], env={**base, "MVFEM_THREADS": "2", **env},
+                    timeout=120, check=True).stdout.split()
     return out[0] == "True", out[1] == "True", out[2], float(out[3])
 
 
