@@ -8,7 +8,10 @@ STAMP := $(VENV)/.mvfem-setup
 APT_PACKAGES := python3-dolfinx python3-gmsh python3-meshio python3-venv python3-pip \
 	python3-matplotlib python3-scipy python3-h5py libopenblas0-pthread openmpi-bin chromium
 MPI_ENV := OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OPENBLAS_NUM_THREADS=1
-MPIRUN := $(MPI_ENV) mpirun --oversubscribe -n 2
+MPIRUN := env $(MPI_ENV) mpirun --oversubscribe -n 2
+# The top commands below are started again where they exit 1 at start-up without a word, at
+# most twice, each time with a line saying so (mvfem/relaunch.py; README "Exit codes")
+RELAUNCH := $(PY) -m mvfem.relaunch --
 
 .PHONY: setup demo bench test test-serial test-mpi test-hard clean
 
@@ -35,26 +38,26 @@ $(STAMP): pyproject.toml Makefile
 
 # The built-in healthy valve closed at 16 kPa (MNY mean, chordae, contact): results/demo
 demo: setup
-	$(VENV)/bin/mvfem demo --out results/demo
+	$(RELAUNCH) $(VENV)/bin/mvfem demo --out results/demo
 
 # Speed against error (issue 7): the full sweep, 6-20 min on 2 cores; results/bench/
 # (bench.csv, bench_pareto.png, bench.md). One BLAS thread: timings of one solve at a time.
 bench: setup
-	OPENBLAS_NUM_THREADS=1 $(VENV)/bin/mvfem bench --out results/bench
+	$(RELAUNCH) env OPENBLAS_NUM_THREADS=1 $(VENV)/bin/mvfem bench --out results/bench
 
 test: test-serial test-mpi
 
 test-serial: setup
-	$(PY) -m pytest -q
+	$(RELAUNCH) $(PY) -m pytest -q
 
 # -u: each rank's report reaches the log even when mpirun aborts the job
 test-mpi: setup
-	$(MPIRUN) $(PY) -u -m pytest -q -m mpi -p no:cacheprovider --color=no
+	$(RELAUNCH) $(MPIRUN) $(PY) -u -m pytest -q -m mpi -p no:cacheprovider --color=no
 
 # The hard cases (issue 7): each ends converged or with exit code 3, never a hang, NaN or
 # traceback; about 10-15 min. The README table: $(PY) scripts/hard_cases.py
 test-hard: setup
-	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q -m hard
+	$(RELAUNCH) env OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q -m hard
 
 clean:
 	rm -rf $(VENV) results .pytest_cache *.egg-info

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import gc
-import re
 import subprocess
 import time
 import warnings
@@ -12,6 +11,7 @@ import pytest
 from mpi4py import MPI
 
 from mvfem.cli import quiet_jit_logs  # noqa: E402
+from mvfem.relaunch import silent_start_exit  # noqa: E402
 
 quiet_jit_logs()
 
@@ -79,27 +79,10 @@ def rotation(axis, angle: float):
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
-#: mpirun's own report of a rank that exited with a non-zero code (no word of the rank's)
-_MPIRUN_REPORT = re.compile(r"^(-+|Primary job +terminated normally.*|a non-zero exit code\..*|"
-                            r"mpirun detected that one or more processes exited.*|"
-                            r"the job to be terminated\..*|\s*Process name:.*|"
-                            r"\s*Exit code:.*|)$")
-
-
-def silent_start_exit(r: subprocess.CompletedProcess, seconds: float,
-                      within_s: float = 60.0) -> bool:
-    """Whether a child exited 1 at start-up without a word: within ``within_s`` and with
-    nothing on stdout or stderr but mpirun's report of it. Every error of ours says one line,
-    and Python's own a traceback; such exits come in bursts on the shared machines and their
-    cause is not established (README, Studies)."""
-    return (r.returncode == 1 and seconds < within_s and not (r.stdout or "").strip()
-            and all(_MPIRUN_REPORT.match(line) for line in (r.stderr or "").splitlines()))
-
-
 def run_child(cmd, *, retries: int = 2, **kw) -> subprocess.CompletedProcess:
     """``subprocess.run(cmd, capture_output=True, text=True, **kw)``, started again (at most
     ``retries`` times, each with a warning in pytest's summary) where it exits silently at
-    start-up (:func:`silent_start_exit`), as a study starts its runs again
+    start-up (:func:`mvfem.relaunch.silent_start_exit`), as a study starts its runs again
     (``mvfem.study``): in session 32 three fresh-clone suites failed on one such child each.
     A child that says anything, or exits otherwise, is returned as it is."""
     kw.setdefault("capture_output", True)
@@ -108,7 +91,8 @@ def run_child(cmd, *, retries: int = 2, **kw) -> subprocess.CompletedProcess:
     for attempt in range(retries + 1):
         t0 = time.monotonic()
         r = subprocess.run(cmd, **kw)
-        if attempt == retries or not silent_start_exit(r, time.monotonic() - t0):
+        if attempt == retries or not silent_start_exit(r.returncode, time.monotonic() - t0,
+                                                        r.stdout, r.stderr):
             break
         warnings.warn(f"{' '.join(map(str, cmd))[:200]}: exited 1 at start-up without a "
                       f"word after {time.monotonic() - t0:.1f} s; started again "

@@ -1,8 +1,11 @@
-"""The suite's guard against children that exit at start-up without a word (``run_child`` in
-conftest.py): such a child is started again, any other outcome is returned as it is."""
+"""The guards against commands that exit at start-up without a word: the suite's children
+(``run_child`` in conftest.py) and the Makefile's top commands (``python -m mvfem.relaunch``).
+Such a command is started again; any other outcome is returned as it is."""
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
 
 import pytest
@@ -11,6 +14,7 @@ from conftest import run_child
 # exits 1 without a word the first ``fails`` times it is started (a count in a file), then
 # prints "ran" and exits with ``rc``
 CHILD = """
+import subprocess
 import sys
 from pathlib import Path
 count, fails, rc, say = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
@@ -69,3 +73,87 @@ def test_check_raises_after_the_retries(tmp_path):
     with pytest.warns(UserWarning), pytest.raises(Exception) as err:
         run_child(_child(tmp_path, fails=5), retries=1, check=True)
     assert "returned non-zero exit status 1" in str(err.value) and _starts(tmp_path) == 2
+
+
+# `make demo` and `make test` run their top commands through `python -m mvfem.relaunch`, the
+# same rule outside pytest: the command's output passes through as it comes
+
+
+def _relaunch(tmp_path, fails: int, rc: int = 0, say: str = "", *args):
+    cmd = [sys.executable, "-m", "mvfem.relaunch", *args, "--", *_child(tmp_path, fails, rc, say)]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("say", ["", "mpirun"])
+def test_relaunch_starts_a_silent_start_exit_again(tmp_path, say):
+    r = _relaunch(tmp_path, 2, 0, say)
+    assert r.returncode == 0 and r.stdout == "ran\n" and _starts(tmp_path) == 3
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("mvfem.relaunch:")]
+    assert len(lines) == 2 and "(1 of 2)" in lines[0] and "(2 of 2)" in lines[1]
+    assert all("exited 1 at start-up without a word" in ln for ln in lines)
+    if say == "mpirun":  # mpirun's report of each exit is passed through, not swallowed
+        assert r.stderr.count("mpirun detected") == 2
+
+
+def test_relaunch_gives_up_after_its_retries(tmp_path):
+    r = _relaunch(tmp_path, 5, 0, "", "--retries", "1")
+    assert r.returncode == 1 and _starts(tmp_path) == 2 and r.stdout == ""
+    assert r.stderr.count("starting it again") == 1
+
+
+@pytest.mark.parametrize("fails,rc,say", [(1, 0, "an error of ours"), (0, 1, ""), (0, 2, ""),
+                                          (0, 3, "")])
+def test_relaunch_passes_other_exits_through(tmp_path, fails, rc, say):
+    """A command that says a word, exits 1 after its work, or with another code, runs once,
+    and its code and output are the wrapper's."""
+    r = _relaunch(tmp_path, fails, rc, say)
+    assert r.returncode == (1 if fails else rc) and _starts(tmp_path) == 1
+    assert r.stdout == (say + "\n" if fails else "ran\n") and "relaunch" not in r.stderr
+
+
+def test_relaunch_counts_only_exits_within_its_window(tmp_path):
+    """A silent exit 1 after the window (here 0.001 s) is the command's failure, not a
+    start-up exit."""
+    r = _relaunch(tmp_path, 5, 0, "", "--within", "0.001")
+    assert r.returncode == 1 and _starts(tmp_path) == 1
+
+
+def test_relaunch_refuses_a_missing_command(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "mvfem.relaunch", "--", str(tmp_path / "none")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "cannot start" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "mvfem.relaunch"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 2 and "no command given" in r.stderr
+
+
+def test_relaunch_imports_no_petsc():
+    """The wrapper must not itself be a process that can exit so: the exits follow PETSc's
+    start (README, Studies)."""
+    code = ("import sys, runpy; sys.argv = ['x', '--', 'true']\n"
+            "try:\n    runpy.run_module('mvfem.relaunch', run_name='__main__')\n"
+            "except SystemExit:\n    pass\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('petsc4py', 'mpi4py', 'dolfinx', 'gmsh')))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
+
+
+def test_relaunch_passes_output_through_as_it_comes(tmp_path):
+    """A line the command prints reaches the wrapper's stdout while the command still runs
+    (here: the command waits for a file that the test writes once it has read the line),
+    also where the caller's environment leaves Python's output buffered."""
+    flag = tmp_path / "go"
+    script = tmp_path / "talk.py"
+    script.write_text("import sys, time\nfrom pathlib import Path\nprint('first')\n"
+                      "t = time.monotonic()\n"
+                      f"while not Path({str(flag)!r}).exists() and time.monotonic() - t < 10:\n"
+                      "    time.sleep(0.02)\n"
+                      f"print('second' if Path({str(flag)!r}).exists() else 'waited in vain')\n")
+    p = subprocess.Popen([sys.executable, "-m", "mvfem.relaunch", "--", sys.executable,
+                          str(script)], stdout=subprocess.PIPE, text=True,
+                         env={k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"})
+    assert p.stdout.readline() == "first\n"
+    flag.write_text("")
+    rest, _ = p.communicate(timeout=60)
+    assert rest == "second\n" and p.returncode == 0
