@@ -12,8 +12,9 @@ Such exits come in bursts on the shared machines: a Python process exits 1 about
 PETSc installs its signal handlers, before its first gmsh call, with no signal and nothing
 written (strace); their cause is not established (README, Studies). The test suite's children
 (``tests/conftest.py`` ``run_child``) and a study's runs (:mod:`mvfem.study`) are started
-again so already; ``make demo`` and ``make test`` run their top commands (the demo, the serial
-suite, the ``mpirun`` of the MPI suite) through this module, which imports nothing of PETSc's.
+again so already; the Makefile runs its top commands (``make demo``, the serial suite, the
+``mpirun`` of the MPI suite, ``make bench``, ``make test-hard``) through this module, which
+imports nothing of PETSc's, MPI's or gmsh's.
 """
 
 from __future__ import annotations
@@ -45,11 +46,17 @@ def silent_start_exit(returncode: int, seconds: float, stdout: str | None, stder
 
 
 def _pump(src, dst, kept: list[bytes], limit: int = 1 << 16) -> None:
-    """Copy ``src`` to ``dst`` as it comes (flushed), keeping its first ``limit`` bytes."""
+    """Copy ``src`` to ``dst`` as it comes (flushed), keeping its first ``limit`` bytes. Where
+    ``dst`` is closed (a reader that stopped early), ``src`` is still drained: the command
+    must not block on a full pipe."""
     size = 0
     for chunk in iter(lambda: src.read1(1 << 14), b""):
-        dst.write(chunk)
-        dst.flush()
+        if dst is not None:
+            try:
+                dst.write(chunk)
+                dst.flush()
+            except (OSError, ValueError):
+                dst = None
         if size < limit:
             kept.append(chunk[: limit - size])
             size += len(kept[-1])

@@ -157,3 +157,19 @@ def test_relaunch_passes_output_through_as_it_comes(tmp_path):
     flag.write_text("")
     rest, _ = p.communicate(timeout=60)
     assert rest == "second\n" and p.returncode == 0
+
+
+def test_relaunch_drains_a_command_whose_reader_stopped(tmp_path):
+    """A reader that stops early (``| head``) must not leave the command blocked on a full
+    pipe: the wrapper keeps draining it and returns its exit code."""
+    script = tmp_path / "loud.py"
+    script.write_text("for i in range(50000):\n    print('line', i)\n")
+    p = subprocess.Popen([sys.executable, "-m", "mvfem.relaunch", "--", sys.executable,
+                          str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert p.stdout.readline() == b"line 0\n"
+        p.stdout.close()
+        assert p.wait(timeout=30) == 0
+    finally:
+        p.kill()  # (a hung wrapper; its command ends on its own pipe)
+    assert b"Traceback" not in p.stderr.read()
