@@ -27,7 +27,13 @@ import sys
 import threading
 import time
 
-__all__ = ["silent_start_exit", "run", "main"]
+__all__ = ["RETRIES", "WITHIN_S", "silent_start_exit", "run", "main"]
+
+#: how many times a command that exits silently at start-up is started again (also the suite's
+#: ``run_child`` and a study's runs)
+RETRIES = 2
+#: seconds after its start within which such an exit counts as one
+WITHIN_S = 60.0
 
 #: mpirun's own report of a rank that exited with a non-zero code (no word of the rank's)
 _MPIRUN_REPORT = re.compile(r"^(-+|Primary job +terminated normally.*|a non-zero exit code\..*|"
@@ -37,7 +43,7 @@ _MPIRUN_REPORT = re.compile(r"^(-+|Primary job +terminated normally.*|a non-zero
 
 
 def silent_start_exit(returncode: int, seconds: float, stdout: str | None, stderr: str | None,
-                      within_s: float = 60.0) -> bool:
+                      within_s: float = WITHIN_S) -> bool:
     """Whether a command exited 1 at start-up without a word: within ``within_s`` and with
     nothing on stdout or stderr but mpirun's report of it. Every error of ours says one line,
     and Python's own a traceback."""
@@ -86,14 +92,15 @@ def _once(cmd: list[str], env: dict) -> tuple[int, float, str, str]:
     return rc, time.monotonic() - t0, text[0], text[1]
 
 
-def run(cmd: list[str], retries: int = 2, within_s: float = 60.0) -> int:
+def run(cmd: list[str], retries: int = RETRIES, within_s: float = WITHIN_S) -> int:
     """Run ``cmd`` (started again after a silent start-up exit, at most ``retries`` times);
     its last exit code."""
     # through a pipe Python buffers stdout in blocks: the suite's dots would come minutes late
     env = {**os.environ, "PYTHONUNBUFFERED": os.environ.get("PYTHONUNBUFFERED", "1")}
     if sys.stdout.isatty():
         env.setdefault("PY_COLORS", "1")  # pytest colours its report for the terminal behind
-    for attempt in range(retries + 1):
+    attempt = 0
+    while True:
         try:
             rc, seconds, out, err = _once(cmd, env)
         except OSError as e:
@@ -101,19 +108,21 @@ def run(cmd: list[str], retries: int = 2, within_s: float = 60.0) -> int:
             return 2
         if attempt == retries or not silent_start_exit(rc, seconds, out, err, within_s):
             return rc
+        attempt += 1
         print(f"mvfem.relaunch: {' '.join(cmd)[:200]} exited 1 at start-up without a word "
-              f"after {seconds:.1f} s; starting it again ({attempt + 1} of {retries})",
+              f"after {seconds:.1f} s; starting it again ({attempt} of {retries})",
               file=sys.stderr, flush=True)
-    return rc
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m mvfem.relaunch",
                                 description="Run a command; start it again where it exits 1 "
                                             "at start-up without a word.")
-    p.add_argument("--retries", type=int, default=2, help="starts after the first (2)")
-    p.add_argument("--within", type=float, default=60.0,
-                   help="seconds after its start within which such an exit counts (60)")
+    p.add_argument("--retries", type=int, default=RETRIES,
+                   help=f"starts after the first ({RETRIES})")
+    p.add_argument("--within", type=float, default=WITHIN_S,
+                   help=f"seconds after its start within which such an exit counts "
+                        f"({WITHIN_S:g})")
     p.add_argument("command", nargs=argparse.REMAINDER, help="-- COMMAND [ARGS...]")
     a = p.parse_args(argv)
     cmd = a.command[1:] if a.command[:1] == ["--"] else a.command

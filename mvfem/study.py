@@ -53,6 +53,7 @@ from typing import Any
 
 
 from mvfem.errors import InputError
+from mvfem.relaunch import RETRIES, WITHIN_S
 from mvfem.scene import read_toml
 
 __all__ = ["Study", "Case", "RunSpec", "load_study", "run_study", "collect_results",
@@ -618,11 +619,11 @@ def _quote(a: str) -> str:
 _INTERRUPTED = (130, 143, -signal.SIGINT, -signal.SIGTERM)
 
 #: how many times a run that exits 1 at start-up without a word (_silent_start_exit) is started
-#: again before the exit is recorded as its failure
-_RETRIES = 2
+#: again before the exit is recorded as its failure: the Makefile's and the suite's count
+_RETRIES = RETRIES
 
 
-def _silent_start_exit(r: _Running, out: Path, within_s: float = 60.0) -> bool:
+def _silent_start_exit(r: _Running, out: Path, within_s: float = WITHIN_S) -> bool:
     """The run ended within ``within_s`` of its start without a word of its own: no summary,
     no Python traceback and no ``mvfem:`` line in its log (a line or two from MPI or a library
     may be there)."""

@@ -11,7 +11,7 @@ import pytest
 from mpi4py import MPI
 
 from mvfem.cli import quiet_jit_logs  # noqa: E402
-from mvfem.relaunch import silent_start_exit  # noqa: E402
+from mvfem.relaunch import RETRIES, silent_start_exit  # noqa: E402
 
 quiet_jit_logs()
 
@@ -79,7 +79,7 @@ def rotation(axis, angle: float):
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
-def run_child(cmd, *, retries: int = 2, **kw) -> subprocess.CompletedProcess:
+def run_child(cmd, *, retries: int = RETRIES, **kw) -> subprocess.CompletedProcess:
     """``subprocess.run(cmd, capture_output=True, text=True, **kw)``, started again (at most
     ``retries`` times, each with a warning in pytest's summary) where it exits silently at
     start-up (:func:`mvfem.relaunch.silent_start_exit`), as a study starts its runs again
