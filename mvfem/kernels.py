@@ -34,7 +34,7 @@ import numpy as np
 __all__ = ["load", "point_triangle_gradient", "point_triangle_hessian",
            "point_triangle_stiffness", "edge_edge_energy",
            "edge_edge_hessian", "point_triangle_distance", "segment_distance", "elements_csr",
-           "csr_missing", "csr_drop_zero_blocks", "threads", "one_blas_thread",
+           "csr_missing", "csr_union", "csr_drop_zero_blocks", "threads", "one_blas_thread",
            "hinge_cos_sin", "hinge_energy", "hinge_hessian", "hinge_hessian_add", "psd_project"]
 
 log = logging.getLogger(__name__)
@@ -68,6 +68,8 @@ long elements_csr(long G, const int64_t *m, const int64_t *k, int64_t **nodes, d
                   int64_t *work);
 long csr_missing(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib,
                  const int64_t *jb);
+long csr_union(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib,
+               const int64_t *jb, int64_t *ic, int64_t *jc);
 long csr_drop_zero_blocks(long N, int64_t *indptr, int64_t *cols, double *vals, int64_t *mark);
 void psd_proj(long m, int p, double *K, int *fail);
 int set_threads(int n);
@@ -814,6 +816,30 @@ long csr_missing(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib
   return missing;
 }
 
+/* The union of the CSR patterns a and b (n rows, columns sorted and distinct in each row)
+   into ic (n + 1 entries) and jc (room for both): a merge of each row pair, its columns
+   sorted and distinct; returns its entry count. */
+long csr_union(long n, const int64_t *ia, const int64_t *ja, const int64_t *ib,
+               const int64_t *jb, int64_t *ic, int64_t *jc) {
+  long at = 0;
+  ic[0] = 0;
+  for (long r = 0; r < n; r++) {
+    int64_t p = ia[r], pe = ia[r + 1], q = ib[r], qe = ib[r + 1];
+    while (p < pe || q < qe) {
+      if (q == qe || (p < pe && ja[p] < jb[q])) {
+        jc[at++] = ja[p++];
+      } else if (p == pe || jb[q] < ja[p]) {
+        jc[at++] = jb[q++];
+      } else {            /* in both */
+        jc[at++] = ja[p++];
+        q++;
+      }
+    }
+    ic[r + 1] = at;
+  }
+  return at;
+}
+
 /* sqrt(a^2 + b^2): libm's hypot, careful about overflow, took a third of a projection's
    time; the plain formula where the squares cannot overflow */
 static inline double pyth(double a, double b) {
@@ -1384,6 +1410,20 @@ def csr_drop_zero_blocks(csr) -> tuple[np.ndarray, ...]:
     nnz = lib.csr_drop_zero_blocks(N, _index(ffi, indptr), _index(ffi, cols), _ptr(ffi, vals),
                                    _index(ffi, mark))
     return indptr, cols[:nnz], vals[:nnz]
+
+
+def csr_union(a, b) -> tuple[np.ndarray, np.ndarray]:
+    """The union of the CSR patterns ``a`` and ``b`` ((indptr, cols, ...) over the same rows,
+    columns sorted and distinct in each row): (indptr, cols), the same way sorted."""
+    ffi, lib = load()
+    ia, ja, ib, jb = _i64(a[0]), _i64(a[1]), _i64(b[0]), _i64(b[1])
+    if len(ia) != len(ib):
+        raise ValueError(f"patterns of {len(ia) - 1} and {len(ib) - 1} rows")
+    ic = np.empty(len(ia), dtype=np.int64)
+    jc = np.empty(len(ja) + len(jb), dtype=np.int64)
+    nnz = lib.csr_union(len(ia) - 1, _index(ffi, ia), _index(ffi, ja), _index(ffi, ib),
+                        _index(ffi, jb), _index(ffi, ic), _index(ffi, jc))
+    return ic, jc[:nnz]    # (a view: its buffer has room for both, not copied again)
 
 
 def csr_missing(a, b) -> int:

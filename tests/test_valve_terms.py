@@ -2253,6 +2253,35 @@ def test_tangent_makes_room_for_new_point_couplings(compiled, monkeypatch):
         forms.destroy()
 
 
+def test_compiled_pattern_union_is_the_set_union():
+    """kernels.csr_union (the matrix's room, grown by the point terms' patterns) against the
+    union of each row's column sets, on random sorted patterns: empty rows, rows in one
+    pattern only, overlapping and identical rows; and the union with itself is itself."""
+    from mvfem import kernels
+
+    if kernels.load() is None:
+        pytest.skip("no C compiler: the scipy union of SNESProblem._union is used instead")
+    rng = np.random.default_rng(11)
+    n, width = 300, 40
+
+    def pattern(density):
+        rows = [np.flatnonzero(rng.random(width) < density) if rng.random() > 0.2
+                else np.zeros(0, dtype=np.int64) for _ in range(n)]
+        return (np.r_[0, np.cumsum([len(r) for r in rows])].astype(np.int64),
+                np.concatenate(rows).astype(np.int64)), rows
+
+    (a, ra), (b, rb) = pattern(0.3), pattern(0.1)
+    ic, jc = kernels.csr_union(a, b)
+    assert len(ic) == n + 1 and ic[0] == 0 and ic[-1] == len(jc)
+    for r in range(n):
+        row = jc[ic[r]:ic[r + 1]]
+        assert np.array_equal(row, np.union1d(ra[r], rb[r])), r
+    same = kernels.csr_union(a, a)
+    assert np.array_equal(same[0], a[0]) and np.array_equal(same[1], a[1])
+    with pytest.raises(ValueError):
+        kernels.csr_union(a, (a[0][:-1], a[1]))
+
+
 def _dense(A) -> np.ndarray:
     from scipy import sparse
 
