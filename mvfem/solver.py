@@ -203,8 +203,8 @@ class SNESProblem:
                 mine = self._union(parts)
         if not self.comm.bcast(mine is not None, root=0):
             return
-        # (one process: its rows are all of them, no scatter; 0.19 s of the twice-refined
-        # demo's run went to pickling the pattern to itself)
+        # (one process: its rows are all of them, no scatter; 0.13-0.19 s of the
+        # twice-refined demo's run went to pickling the pattern to itself)
         ip, jp = mine[0] if self.comm.size == 1 else self.comm.scatter(mine, root=0)
         IT = PETSc.IntType
         self.A.setPreallocationCSR((ip.astype(IT), jp.astype(IT)))
@@ -219,7 +219,8 @@ class SNESProblem:
 
         if kernels.load() is not None:
             # a merge of the sorted rows in C: scipy's sum of the patterns as matrices, then
-            # sorting it, took 0.76 of the 1.9 s of room made in the twice-refined demo's run
+            # sorting it, took 0.76-0.78 of the 1.8-1.9 s of room made in the twice-refined
+            # demo's run, the merge 0.3 s (README "The matrix's room merged in C")
             room = self._room
             for p in parts:
                 room = kernels.csr_union(room, p)
