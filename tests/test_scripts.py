@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import run_child
 
@@ -84,6 +85,35 @@ def test_scaling_script_refuses_bad_input(tmp_path):
         assert r.stdout == ""
     assert old.read_text() == '{"case": "disk"}\n'
     assert not (tmp_path / "a.jsonl").exists() and not (tmp_path / "b.jsonl").exists()
+
+
+def test_coaptation_trace_script_serial_and_on_two_ranks(tmp_path):
+    """scripts/coaptation_trace.py on the 5 mm demo, alone and under mpirun -n 2: one
+    converged row each, both leaflets' continuous lengths in (0, 20) mm, the stepped mean the
+    mean of its leaflets, and the continuous lengths of the two runs within 0.05 mm of each
+    other (their paths differ by roundoff; the measure is continuous). Bad ``--meshes`` and an
+    existing ``--out`` are refused with one line and exit code 2."""
+    script = str(ROOT / "scripts" / "coaptation_trace.py")
+    rows = []
+    for prefix, name in (([], "one.json"), (_mpirun(2), "two.json")):
+        out = tmp_path / name
+        r = run_child([*prefix, sys.executable, script, "--meshes", "5", "--out", str(out)],
+                      capture_output=True, text=True, env=_env(), timeout=300,
+                      stdin=subprocess.DEVNULL, check=False)
+        assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+        (row,) = json.loads(out.read_text())
+        assert row["converged"] and row["cells"] > 100
+        assert all(0.0 < v < 20.0 for v in row["trace_per_leaflet_mm"].values())
+        assert row["coaptation_length_mm"] == pytest.approx(
+            np.mean(list(row["stepped_per_leaflet_mm"].values())))
+        assert "| 5 mm |" in r.stdout
+        rows.append(row)
+    for leaflet, v in rows[0]["trace_per_leaflet_mm"].items():
+        assert abs(rows[1]["trace_per_leaflet_mm"][leaflet] - v) < 0.05
+    for args in (["--meshes", "5x"], ["--meshes", "5", "--out", str(tmp_path / "one.json")]):
+        r = run_child([sys.executable, script, *args], capture_output=True, text=True,
+                      env=_env(), timeout=120, check=False)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, (args, r.stderr)
 
 
 def test_hard_cases_script_two_cases(tmp_path):

@@ -932,6 +932,38 @@ def test_leak_gap_of_a_slot_and_of_overlapping_leaflets():
     assert leak_gap_area(x, ca, cb, np.zeros(3), axis, across, (-5.0, 5.0), 0.5)[0] == 0.0
 
 
+def test_coapting_trace_length_of_overlapping_leaflets():
+    """Leaflet A at z = 0 over x in [0, 6], B at z = g over x in [-6, 3] (both y in [-5, 5]);
+    the plane y = 0.3 (off the grid) cuts A along x in [0, 6], whose points are g from B for
+    x <= 3 and sqrt((x - 3)^2 + g^2) beyond, so within w of B for x <= 3 + sqrt(w^2 - g^2):
+    A's coapting trace is 3 + sqrt(w^2 - g^2) long, and B's the same by symmetry, to within
+    the sampling step (parts counted by their midpoints); 0 once the leaflets are more than w
+    apart. The node flags' length (``valve_metrics``) moves by whole segments instead: at
+    g = 0.3 and 0.6 it counts the same cut triangles (the nodes flagged alike) while the trace
+    shortens by 0.24 mm."""
+    from mvfem.metrics import TRACE_STEP, _section, coapting_trace_length
+
+    w, origin, normal = 0.75, np.array([0.0, 0.3, 0.0]), np.array([0.0, 1.0, 0.0])
+    for g in (0.0, 0.3, 0.6, 0.74):
+        x, ca, cb = _two_leaflets(_strip(0.0, 6.0, -5, 5, 0.0), _strip(-6.0, 3.0, -5, 5, g))
+        exact = 3.0 + np.sqrt(w * w - g * g)
+        for mine, other in ((ca, cb), (cb, ca)):
+            got = coapting_trace_length(x, mine, other, origin, normal, w)
+            assert abs(got - exact) <= TRACE_STEP, (g, got, exact)
+    x, ca, cb = _two_leaflets(_strip(0.0, 6.0, -5, 5, 0.0), _strip(-6.0, 3.0, -5, 5, 0.8))
+    assert coapting_trace_length(x, ca, cb, origin, normal, w) == 0.0
+    # the stepped length: nodes of A within w of B (a node's distance to B as above)
+    stepped = []
+    for g in (0.3, 0.6):
+        x, ca, cb = _two_leaflets(_strip(0.0, 6.0, -5, 5, 0.0), _strip(-6.0, 3.0, -5, 5, g))
+        xa = x[: len(x) // 2]
+        flags = np.zeros(len(x), dtype=bool)
+        flags[: len(xa)] = np.hypot(np.maximum(xa[:, 0] - 3.0, 0.0), g) <= w
+        segs, fl = _section(x, ca, flags, origin, normal)
+        stepped.append(np.linalg.norm(segs[fl, 1] - segs[fl, 0], axis=1).sum())
+    assert stepped[0] == stepped[1]
+
+
 def quad_area_of_ellipse_strip(a: float, b: float, half: float) -> float:
     """Area of the part of the quarter ellipse x^2/a^2 + y^2/b^2 <= 1 (x, y >= 0) with
     x <= half: the integral of b sqrt(1 - x^2/a^2) from 0 to half, in closed form."""
