@@ -34,8 +34,8 @@ from mvfem.contact import segment_distance
 from mvfem.nodal import lumped_area
 
 __all__ = ["valve_metrics", "coapting_nodes", "orifice_area", "leak_gap_area",
-           "coapting_trace_length", "trace_coaptation", "segment_distance", "COAPT_SLACK", "PIXEL", "SECTION_STEP",
-           "ORIFICE_MIN_AREA", "TRACE_STEP"]
+           "coapting_trace_length", "trace_coaptation", "segment_distance", "COAPT_SLACK",
+           "PIXEL", "SECTION_STEP", "ORIFICE_MIN_AREA", "TRACE_STEP"]
 
 #: a pair coapts when its gap is below this multiple of the contact thickness
 COAPT_SLACK = 1.5
@@ -112,8 +112,8 @@ def coapting_trace_length(x, cells_a, cells_b, origin, normal, within: float,
 
     Continuous in the positions, unlike the ``coaptation_length_mm`` of :func:`valve_metrics`,
     which counts a segment (about a cell long) whole or not at all by its nodes' flags: on the
-    demo's meshes of 5 mm to the demo refined twice it read 7.36, 7.95, 5.41, 7.61, 7.84 mm
-    where this one reads 6.56, 6.33, 6.43, 7.11, 7.16 mm, rising to 7.72 mm on the finest
+    demo's meshes of 5, 4, 3, 2.5 and 2 mm that one read 7.36, 7.95, 5.41, 7.61, 7.84 mm and
+    this one 6.56, 6.33, 6.43, 7.11, 7.16 mm; on the 2 mm mesh refined twice 7.88 and 7.72 mm
     (README, "Valve outputs and metrics"; ``scripts/coaptation_trace.py``).
     """
     from scipy.spatial import cKDTree

@@ -802,11 +802,11 @@ def test_transfer_scales_a_crossing_state_back():
     """The 6.5 mm demo's closure moved onto the 4 mm mesh crosses (edges through triangles,
     with the offsets and without; measured: 26 and 36 crossings, still some at 0.9-0.7 x the
     state without offsets, none at 0.6 x, by the model's own crossing count; the 6 mm closure
-    no longer crossed with the offsets once the generator rounded its sample, session 39). ``sequence.transfer`` with no scales refuses
-    it and leaves the open state; with scales 0.9, 0.8, ..., 0.1 it takes the first of them
-    whose state does not cross, exactly that multiple of the state moved without offsets
-    (``transfer_nodes``, the clamp at zero); with the default scales it does so, or refuses
-    when that multiple is below them."""
+    no longer crossed with the offsets once the generator rounded its sample, session 39).
+    ``sequence.transfer`` with no scales refuses it and leaves the open state; with scales
+    0.9, 0.8, ..., 0.1 it takes the first of them whose state does not cross, exactly that
+    multiple of the state moved without offsets (``transfer_nodes``, the clamp at zero); with
+    the default scales it does so, or refuses when that multiple is below them."""
     from mvfem.model import build_model
     from mvfem.scene import load_scene
     from mvfem.sequence import SCALES, transfer, transfer_nodes
