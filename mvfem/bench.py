@@ -151,7 +151,8 @@ def _stress(summary: dict, leaflet: str, p: str):
 
 def _valve_quantities(summary: dict) -> dict:
     v = summary.get("valve") or {}
-    q = {"coaptation_length_mm": v.get("coaptation_length_mm")}
+    q = {"coaptation_length_mm": v.get("coaptation_length_mm"),
+         "coaptation_trace_length_mm": v.get("coaptation_trace_length_mm")}
     for leaflet in ("anterior", "posterior"):
         for p in ("median", "p95"):
             q[f"{leaflet}_radial_stress_{p}_Pa"] = _stress(summary, leaflet, p)

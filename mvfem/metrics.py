@@ -11,6 +11,10 @@ contact pairs of the final state:
   coaptation length is the length of the coapting part of each leaflet's trace in that plane
   (mean of the two leaflets); the tenting height is the depth, below the annulus plane (least
   squares through the annulus nodes), of the atrial-most coapting point of the section;
+- the coaptation trace length reads the same trace continuously: the length of each leaflet's
+  trace within ``COAPT_SLACK`` x the contact thickness of the other leaflet, sampled every
+  ``TRACE_STEP`` mm (:func:`coapting_trace_length`), where the coaptation length counts a cut
+  triangle's segment whole or not at all;
 - the regurgitant orifice area is the part of the annulus opening, seen along the axis, that no
   closed leaflet covers: the projected leaflets are rasterised (``PIXEL``), grown by half the
   contact thickness (the leaflets' own thickness closes a gap of one contact thickness), and
@@ -280,6 +284,11 @@ def valve_metrics(model, x: np.ndarray) -> dict:
                 depths.append(float(((segs[fl].reshape(-1, 3) - centre) @ n).max()))
         out["coaptation_length_mm"] = float(np.mean(list(lengths.values()))) if lengths else None
         out["coaptation_length_per_leaflet_mm"] = lengths
+        # the same trace measured continuously (README, "Valve outputs and metrics")
+        trace = trace_coaptation(model, x)
+        out["coaptation_trace_length_mm"] = (float(np.mean(list(trace.values())))
+                                             if trace else None)
+        out["coaptation_trace_length_per_leaflet_mm"] = trace
         out["tenting_height_mm"] = (-max(depths)) if depths else None
         grow = 0.5 * contact.thickness if contact is not None else 0.0
         projected, pieces = orifice_area(x, view.cells, ann_loop, centre, n, grow,

@@ -43,7 +43,7 @@ def test_quick_bench_writes_its_files(quick):
                                                       rel_tol=1e-6, abs_tol=1e-8)
         assert r["dofs"] > 0 and r["newton_iterations"] > 0
     valve = [r for r in rows if r["problem"] == "valve" and r["quantity"] != "reference run"]
-    assert {"closed_shape_mean", "coaptation_length_mm",
+    assert {"closed_shape_mean", "coaptation_length_mm", "coaptation_trace_length_mm",
             "anterior_radial_stress_p95_Pa"} <= {r["quantity"] for r in valve}
     assert all(r["contact_s"] > 0 for r in valve)
     png = (quick / "bench_pareto.png").read_bytes()

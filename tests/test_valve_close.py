@@ -60,6 +60,12 @@ def test_coarse_valve_closes_without_interpenetration(tmp_path):
     v = s["valve"]
     assert v["regurgitant_orifice_area_mm2"] < 0.02 * v["annulus_area_mm2"]
     assert v["chordae_force_N"]["taut"] > 0.8 * v["chordae_force_N"]["count"]
+    # both leaflets' A2-P2 traces coapt over a few mm (the continuous length beside the
+    # stepped one; its closed form: tests/test_valve_terms.py)
+    trace = v["coaptation_trace_length_per_leaflet_mm"]
+    assert set(trace) == {"anterior", "posterior"}
+    assert all(3.0 < t < 12.0 for t in trace.values())
+    assert v["coaptation_trace_length_mm"] == pytest.approx(sum(trace.values()) / 2)
     for name in ("map_radial_strain.png", "map_radial_stress.png", "chordae.csv",
                  "fields.xdmf", "summary.json"):
         assert (tmp_path / "out" / name).stat().st_size > 0
