@@ -38,7 +38,7 @@ from mvfem.contact import segment_distance
 from mvfem.nodal import lumped_area
 
 __all__ = ["valve_metrics", "coapting_nodes", "orifice_area", "leak_gap_area",
-           "coapting_trace_length", "trace_coaptation", "segment_distance", "COAPT_SLACK",
+           "coapting_trace_length", "segment_distance", "COAPT_SLACK",
            "PIXEL", "SECTION_STEP", "ORIFICE_MIN_AREA", "TRACE_STEP"]
 
 #: a pair coapts when its gap is below this multiple of the contact thickness
@@ -120,11 +120,16 @@ def coapting_trace_length(x, cells_a, cells_b, origin, normal, within: float,
     this one 6.56, 6.33, 6.43, 7.11, 7.16 mm; on the 2 mm mesh refined twice 7.88 and 7.72 mm
     (README, "Valve outputs and metrics"; ``scripts/coaptation_trace.py``).
     """
+    segs, _ = _section(x, cells_a, np.zeros(len(x), dtype=bool), origin, normal)
+    return _length_within(segs, x, cells_b, within, step)
+
+
+def _length_within(segs, x, cells_b, within: float, step: float) -> float:
+    """:func:`coapting_trace_length` of the trace's segments ``segs`` ((k, 2, 3))."""
     from scipy.spatial import cKDTree
 
     from mvfem.contact import closest_point_on_triangles
 
-    segs, _ = _section(x, cells_a, np.zeros(len(x), dtype=bool), origin, normal)
     if len(segs) == 0 or len(cells_b) == 0:
         return 0.0
     length = np.linalg.norm(segs[:, 1] - segs[:, 0], axis=1)
@@ -260,7 +265,11 @@ def valve_metrics(model, x: np.ndarray) -> dict:
     ``"_coapting"`` (removed before writing)."""
     view, surface, contact = model.view, model.surface, model.contact
     names = {v: k for k, v in (surface.names or {}).items()}
-    ann_loop = _annulus_loop(model, x)
+    ann_loop = np.asarray(getattr(surface, "annulus_curve", np.zeros((0, 3))))
+    moved = getattr(model, "annulus_nodes", None)
+    if moved is not None and len(moved) >= 3:  # a prescribed annulus (ring): where it is now
+        ann_loop = x[moved]
+    axis = np.asarray(getattr(surface, "axis", [0.0, 0.0, 1.0]), dtype=float)
     out: dict = {}
     if contact is not None:
         flags = coapting_nodes(contact, x, view.cell_tag)
@@ -274,21 +283,27 @@ def valve_metrics(model, x: np.ndarray) -> dict:
         flags = np.zeros(len(view.X), dtype=bool)
         out["coaptation_area_mm2"] = None
     if len(ann_loop) >= 3:
-        centre, n, ap, section_normal = _a2p2(model, ann_loop)
-        lengths, depths = {}, []
+        centre, n = _frame(ann_loop, axis)
+        ap = np.asarray(getattr(surface, "frame", np.eye(3)))[0]
+        ap = ap - (ap @ n) * n
+        ap /= np.linalg.norm(ap)
+        section_normal = np.cross(n, ap)
+        lengths, depths, trace = {}, [], {}
         for t in np.unique(view.cell_tag):
             segs, fl = _section(x, view.cells[view.cell_tag == t], flags, centre, section_normal)
             name = names.get(int(t), str(t))
             lengths[name] = float(np.linalg.norm(segs[fl, 1] - segs[fl, 0], axis=1).sum())
+            if contact is not None:  # the same trace measured continuously
+                trace[name] = _length_within(segs, x, view.cells[view.cell_tag != t],
+                                             COAPT_SLACK * contact.thickness, TRACE_STEP)
             if fl.any():
                 depths.append(float(((segs[fl].reshape(-1, 3) - centre) @ n).max()))
         out["coaptation_length_mm"] = float(np.mean(list(lengths.values()))) if lengths else None
         out["coaptation_length_per_leaflet_mm"] = lengths
-        # the same trace measured continuously (README, "Valve outputs and metrics")
-        trace = trace_coaptation(model, x)
+        # (README, "Valve outputs and metrics": the stepped and the continuous lengths)
         out["coaptation_trace_length_mm"] = (float(np.mean(list(trace.values())))
                                              if trace else None)
-        out["coaptation_trace_length_per_leaflet_mm"] = trace
+        out["coaptation_trace_length_per_leaflet_mm"] = trace or None
         out["tenting_height_mm"] = (-max(depths)) if depths else None
         grow = 0.5 * contact.thickness if contact is not None else 0.0
         projected, pieces = orifice_area(x, view.cells, ann_loop, centre, n, grow,
@@ -321,43 +336,6 @@ def valve_metrics(model, x: np.ndarray) -> dict:
     out["ties"] = ties.summary(x) if ties is not None and len(ties) else None
     out["_coapting"] = flags
     return out
-
-
-def _annulus_loop(model, x: np.ndarray) -> np.ndarray:
-    """The annulus as it is in ``x``: the prescribed annulus nodes where a ring moves them,
-    else the generator's curve."""
-    moved = getattr(model, "annulus_nodes", None)
-    if moved is not None and len(moved) >= 3:
-        return x[moved]
-    return np.asarray(getattr(model.surface, "annulus_curve", np.zeros((0, 3))))
-
-
-def _a2p2(model, ann_loop: np.ndarray):
-    """The A2-P2 section: the annulus centre, the annulus plane's normal (toward the atrium),
-    the anteroposterior direction in that plane and the section plane's normal."""
-    surface = model.surface
-    axis = np.asarray(getattr(surface, "axis", [0.0, 0.0, 1.0]), dtype=float)
-    centre, n = _frame(ann_loop, axis)
-    ap = np.asarray(getattr(surface, "frame", np.eye(3)))[0]
-    ap = ap - (ap @ n) * n
-    ap /= np.linalg.norm(ap)
-    return centre, n, ap, np.cross(n, ap)
-
-
-def trace_coaptation(model, x: np.ndarray, step: float = TRACE_STEP) -> dict | None:
-    """Each leaflet's :func:`coapting_trace_length` in the A2-P2 section of the closed state
-    ``x`` (rank 0's gathered positions), within ``COAPT_SLACK`` contact thicknesses of the
-    other leaflets; None without contact or an annulus."""
-    view, surface, contact = model.view, model.surface, model.contact
-    ann_loop = _annulus_loop(model, x)
-    if contact is None or len(ann_loop) < 3:
-        return None
-    names = {v: k for k, v in (surface.names or {}).items()}
-    centre, _, _, normal = _a2p2(model, ann_loop)
-    within = COAPT_SLACK * contact.thickness
-    return {names.get(int(t), str(t)): coapting_trace_length(
-        x, view.cells[view.cell_tag == t], view.cells[view.cell_tag != t], centre, normal,
-        within, step) for t in np.unique(view.cell_tag)}
 
 
 def _leak_between_leaflets(surface, view, x, centre, axis, ap, across, thickness, names):
