@@ -8,8 +8,10 @@ the closure of the level below (``solver.nested``), at each pressure (kPa), one 
 other in this process, and prints for every pseudo-time solve (a level; a level restarted
 from the open state is a second row): its dofs, steps, refused steps, growths of the matrix's
 pattern (each a new symbolic analysis), updates solved with the symmetric tangent,
-convexified re-solves, and its wall time with the linear solves, the assembly (residuals,
-tangents, energies, the load's work) and the point terms (contact, chordae, hinges) in it;
+convexified re-solves, updates solved with the projected blocks at once (``ahead``:
+``PseudoTransient.convex_window``), and its wall time with the linear solves, the assembly
+(residuals, tangents, energies, the load's work) and the point terms (contact, chordae,
+hinges) in it;
 then the run's total and the closed coaptation. ``--history`` also prints the finest level's
 steps (weight ``k``, the update's fraction ``alpha``, residual, accepted). ``--hot`` also
 records, at each accepted step of every level, where the residual is: the share of ``|F|^2``
@@ -93,6 +95,7 @@ class Recorded(PseudoTransient):
                 "dofs": int(pb.x.getSize()), "steps": len(h),
                 "refused": sum(not r.accepted for r in h), "growths": pb.regrowths - g0,
                 "symmetric": self.symmetric_solves, "convexified": self.convexified,
+                "ahead": self.convexified_ahead,
                 "wall_s": time.perf_counter() - t0, "linear_s": self.solve_s,
                 "assembly_s": pb.assembly_s - a0,
                 "point_terms_s": (pt.time_s if pt is not None else 0.0) - p0,
@@ -121,12 +124,13 @@ def table(rec: dict, history: bool) -> str:
     lines = [f"refine {rec['refine']}, {rec['size_mm']} mm, {rec['pressure_kPa']} kPa: "
              f"{rec['wall_s']:.1f} s, converged {rec['converged']}, coaptation "
              f"{rec['coaptation_mm']:.6f} mm", "",
-             "| dofs | steps | refused | growths | symmetric | convexified | wall (s) | "
+             "| dofs | steps | refused | growths | symmetric | convexified | ahead | wall (s) | "
              "linear solves (s) | assembly (s) | point terms (s) | a step (s) |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for lv in rec["levels"]:
         lines.append(f"| {lv['dofs']} | {lv['steps']} | {lv['refused']} | {lv['growths']} | "
-                     f"{lv['symmetric']} | {lv['convexified']} | {lv['wall_s']:.2f} | "
+                     f"{lv['symmetric']} | {lv['convexified']} | {lv['ahead']} | "
+                     f"{lv['wall_s']:.2f} | "
                      f"{lv['linear_s']:.2f} | {lv['assembly_s']:.2f} | "
                      f"{lv['point_terms_s']:.2f} | {lv['wall_s'] / max(lv['steps'], 1):.3f} |")
     if history and rec["levels"]:

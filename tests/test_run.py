@@ -245,6 +245,34 @@ def test_pseudo_time_convexifies_where_newton_climbs():
     assert not all(r.accepted for r in ptc.history)
 
 
+def test_pseudo_time_keeps_projecting_for_a_window_after_a_climb():
+    """``PseudoTransient.convex_window``: after an accepted update that had to be solved
+    again with the projected blocks, the next ``convex_window`` accepted updates are solved
+    with them at once (one tangent each instead of two where the exact one still climbs),
+    then the exact tangent is tried first again. In the well: without the window, the exact
+    tangent at z = -0.0514 and at -0.174 (both on the hump, 3 z^2 - 1 < 0) climbs and is
+    solved again; with a window of 2, the re-solve at -0.0514 is followed by two projected
+    tangents at once and then exact ones. Same path and equilibrium (z^3 - z + c z / 18 = 0)."""
+    root = np.sqrt(1 - 0.01 / 18)
+    runs = {}
+    for window in (0, 2):
+        info, ptc, z, well = _one_node(lambda X: _DoubleWell(X, lazy=True), f"window{window}_",
+                                       z0=0.05, k0=0.5, max_steps=100, convex_window=window)
+        assert info.converged and abs(z + root) < 1e-9
+        tangents = [e[1:] for e in well.events if e[0] == "K"]
+        runs[window] = (ptc, tangents)
+    (plain, exact), (kept, ahead) = runs[0], runs[2]
+    hump = [i for i, (z, convex) in enumerate(exact) if convex]    # the re-solves
+    assert len(hump) == 2 and plain.convexified == 2 and plain.convexified_ahead == 0
+    assert all(3 * exact[i][0] ** 2 < 1 and not exact[i - 1][1] for i in hump)
+    i = hump[0]
+    assert ahead[:i + 1] == exact[:i + 1]      # the same start, the first re-solve included
+    assert [convex for _, convex in ahead[i + 1:i + 4]] == [True, True, False]
+    assert kept.convexified == 1 and kept.convexified_ahead == 2
+    assert len(ahead) == len(exact) - 1        # the second climb's exact tangent saved
+    assert [h.weight for h in kept.history] == [h.weight for h in plain.history]
+
+
 def test_pseudo_time_projects_before_newtons_regime():
     """``PseudoTransient.convexify_early``: before Newton's regime every update is solved with
     the projected blocks, the first one at the start (z = 0.05, where the exact curvature is
