@@ -700,8 +700,8 @@ class PseudoTransient:
     #: solved with them at once, the exact tangent not tried first: where it was indefinite
     #: it mostly stays so for a step or two (the same contact pairs), and each try costs a
     #: tangent and a factorisation. On the demo refined twice at 16 pressures 15.5-17.375
-    #: kPa: 11 % less time, the finest level 606 steps against 677 (windows of 1 and 3 gave
-    #: nothing; README, "Nested levels")
+    #: kPa: 11 % less time, the finest level 606 steps against 677 (windows of 1, 3 and 4
+    #: gave nothing; on the 3 and 4 mm demos refined twice a wash; README, "Solving")
     convex_window: int = 2
     #: in pseudo-time (``k >= k0``, before Newton's regime), solve every update with the
     #: point terms' blocks projected (IPC's projected Newton), the exact ones kept for
