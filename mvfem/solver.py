@@ -699,10 +699,12 @@ class PseudoTransient:
     #: (``convexify``), the next ``convex_window`` accepted updates in Newton's regime are
     #: solved with them at once, the exact tangent not tried first: where it was indefinite
     #: it mostly stays so for a step or two (the same contact pairs), and each try costs a
-    #: tangent and a factorisation. On the demo refined twice at 16 pressures 15.5-17.375
-    #: kPa: 11 % less time, the finest level 606 steps against 677 (windows of 1, 3 and 4
-    #: gave nothing; on the 3 and 4 mm demos refined twice a wash; README, "Solving")
-    convex_window: int = 2
+    #: tangent and a factorisation. Off by default; the runs use 2 on nested levels
+    #: (``mvfem.run.NESTED_CONVEX_WINDOW``): the demo refined twice at 16 pressures 15.5-17.375
+    #: kPa took 11 % less time, the finest level 606 steps against 677 (windows of 1, 3 and
+    #: 4 gave nothing), but the demo started from a coarser closure (``coarse_start``) 10 %
+    #: more steps (README, "Solving")
+    convex_window: int = 0
     #: in pseudo-time (``k >= k0``, before Newton's regime), solve every update with the
     #: point terms' blocks projected (IPC's projected Newton), the exact ones kept for
     #: Newton's regime. Off: on the demo refined twice 424 s against 544 s, but the refined

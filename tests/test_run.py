@@ -10,6 +10,7 @@ import pytest
 from mpi4py import MPI
 
 from mvfem.cli import main
+import mvfem.run as run_mod
 from mvfem.run import solve
 
 DISK = {"title": "coarse disk", "mesh": {"generator": "disk", "radius": 10.0, "size": 1.25},
@@ -924,6 +925,33 @@ def test_solve_runs_openblas_on_one_thread(monkeypatch):
         assert lib.openblas_get_num_threads() == n
     finally:
         lib.openblas_set_num_threads(before)
+
+
+@pytest.mark.parametrize("changes, windows", [
+    ({"mesh.size": 5.0, "mesh.refine": 1}, [0, run_mod.NESTED_CONVEX_WINDOW]),
+    ({"mesh.size": 4.0, "solver.coarse_start": 5.0}, [0, 0]),
+])
+def test_only_nested_levels_keep_projecting_after_a_climb(monkeypatch, changes, windows):
+    """The window of projected blocks after a convexified re-solve
+    (``PseudoTransient.convex_window``) is opened on nested levels only: the refined level of
+    ``mesh.refine`` gets ``NESTED_CONVEX_WINDOW`` (2), while the open-state start below it and
+    a level started from a coarser mesh's closure (``solver.coarse_start``, where it cost 10 %
+    more steps; README, "Solving") keep none. Each level's solve is recorded as it starts."""
+    from mvfem.scene import load_scene
+    from mvfem.solver import PseudoTransient
+
+    assert run_mod.NESTED_CONVEX_WINDOW == 2 and PseudoTransient.convex_window == 0
+    seen, run = [], PseudoTransient.run
+
+    def recorded(self):
+        seen.append(self.convex_window)
+        return run(self)
+
+    monkeypatch.setattr(PseudoTransient, "run", recorded)
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    r = solve(scene.with_changes(changes), progress=False, write=False)
+    assert r.converged and r.summary["coarse_start"]["used"]
+    assert seen == windows
 
 
 @pytest.mark.parametrize("changes", [{"mesh.refine": 1}, {"solver.coarse_start": 8.0}])
