@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from mvfem.cli import main
 import mvfem.run as run_mod
+from mvfem.cli import main
 from mvfem.run import solve
 
 DISK = {"title": "coarse disk", "mesh": {"generator": "disk", "radius": 10.0, "size": 1.25},
