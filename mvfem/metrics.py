@@ -126,9 +126,7 @@ def coapting_trace_length(x, cells_a, cells_b, origin, normal, within: float,
 
 def _length_within(segs, x, cells_b, within: float, step: float) -> float:
     """:func:`coapting_trace_length` of the trace's segments ``segs`` ((k, 2, 3))."""
-    from scipy.spatial import cKDTree
-
-    from mvfem.contact import closest_point_on_triangles
+    from mvfem.distance import point_triangle_distance
 
     if len(segs) == 0 or len(cells_b) == 0:
         return 0.0
@@ -138,18 +136,8 @@ def _length_within(segs, x, cells_b, within: float, step: float) -> float:
     first = np.repeat(np.cumsum(parts) - parts, parts)
     u = (np.arange(len(seg)) - first + 0.5) / parts[seg]
     p = segs[seg, 0] + u[:, None] * (segs[seg, 1] - segs[seg, 0])
-    a, b, c = (x[cells_b[:, i]] for i in range(3))
-    centre = (a + b + c) / 3.0
-    reach = np.sqrt(np.max(np.sum((np.stack([a, b, c]) - centre) ** 2, axis=2)))
-    near = cKDTree(centre).query_ball_point(p, within + reach)
-    i = np.repeat(np.arange(len(p)), [len(n) for n in near])
-    if len(i) == 0:
-        return 0.0
-    t = np.concatenate([np.asarray(n, dtype=np.int64) for n in near if n])
-    d, _, _ = closest_point_on_triangles(p[i], a[t], b[t], c[t])
-    nearest = np.full(len(p), np.inf)
-    np.minimum.at(nearest, i, d)
-    return float(np.sum((length / parts)[seg][nearest <= within]))
+    near = point_triangle_distance(p, x, cells_b) <= within
+    return float(np.sum((length / parts)[seg][near]))
 
 
 def _inside_polygon(ring: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
