@@ -1083,6 +1083,43 @@ class Contact:
             return 1.0
         return min(1.0, (1 - keep) * self._first_crossing(x, dx))
 
+    def squeeze_limit(self, x: np.ndarray, dx: np.ndarray, alpha: float, keep: float = 0.5,
+                      halvings: int = 12) -> float:
+        """The largest ``alpha 2^-k`` (``k <= halvings``, else 0) at which no pair of the
+        barrier (node-triangle or edge-edge, within the thickness there) is closer than
+        ``keep`` x its distance at ``x``, or x the thickness for a pair coming into it.
+
+        For a move the potential does not judge: the prescribed motion's harmonic lifting
+        of the interior (:class:`mvfem.run._AdaptiveRamp`). Bounded by the collision check
+        alone (``step_limit``, 0.8 of the way to the first crossing), each lifting brought
+        the closest pair 5-fold closer; on the dilated valve with a 36 mm ring, two facing
+        edges came to 2e-10 mm over 20 calls, their barrier force to 1e13 and no update was
+        admissible (README, "Repairs"). A Newton step from a lifted state restores such a
+        gap about twofold (the log barrier's ``b' / b''``), so halving it is the most a
+        lifting may do."""
+        if len(self.slaves) == 0 or alpha <= 0.0 or not np.any(dx):
+            return alpha
+        for _ in range(halvings + 1):
+            if self._squeezed_at_most(x, x + alpha * dx, keep):
+                return alpha
+            alpha *= 0.5
+        return 0.0
+
+    def _squeezed_at_most(self, x0: np.ndarray, x1: np.ndarray, keep: float) -> bool:
+        """Whether every barrier pair within the thickness at ``x1`` is at least ``keep`` x
+        min(its distance at ``x0``, thickness) apart."""
+        s, t, _, d1 = self.active_pairs(x1)
+        if len(s):
+            d0 = _fast_triangle_distance(x0, self.view.cells, s, t)
+            if np.any(d1 < keep * np.minimum(d0, self.thickness)):
+                return False
+        i, j, e1 = self.edge_pairs(x1)
+        if len(i):
+            e0 = _fast_segment_distance(x0, self._edges, i, j)
+            if np.any(e1 < keep * np.minimum(e0, self.thickness)):
+                return False
+        return True
+
     def _first_crossing(self, x: np.ndarray, dx: np.ndarray) -> float:
         """The first crossing of a node and a triangle or of two edges along ``dx`` (a
         fraction of it in [0, 1]; inf for none)."""

@@ -104,8 +104,9 @@ class Model:
     #: ``ramp(f)`` sets it to the fraction f in [0, 1]; None when the scene has none
     ramp: object = None
     ramp_steps: int = 0
-    #: ``lift()``: move ``u`` onto the current Dirichlet values of the prescribed loop, the
-    #: interior by the harmonic extension of the change (a start for the next solve)
+    #: ``lift(squeeze=None)``: move ``u`` onto the current Dirichlet values of the prescribed
+    #: loop, the interior by the harmonic extension of the change (a start for the next
+    #: solve), as far as the contact allows; returns the fraction taken
     lift: object = None
     #: rank 0: global node indices of a prescribed (moving) annulus, in order along it
     annulus_nodes: object = None
@@ -520,10 +521,14 @@ class _Lifting:
         self.ksp.getPC().setFactorSolverType("mumps")
         self.g, self.u, self.w = g, u, fem.Function(V)
         self.b = fpetsc.create_vector(self.L)
-        #: ``limit(u_owned, w_owned)`` -> the fraction of ``w`` allowed (contact's CCD bound)
+        #: ``limit(u_owned, w_owned, squeeze=None)`` -> the fraction of ``w`` allowed (contact:
+        #: the collision check, and with ``squeeze`` the closest pairs kept that share apart)
         self.limit = None
 
-    def __call__(self) -> None:
+    def __call__(self, squeeze: float | None = None) -> float:
+        """Lift ``u`` towards the current Dirichlet values; the fraction of the lifting taken
+        (the clamped dofs too: they end at ``u + alpha (g - u)``), bounded by the collision
+        check and, with ``squeeze``, by :meth:`mvfem.contact.Contact.squeeze_limit`."""
         from dolfinx.fem import petsc as fpetsc
 
         self.m.x.array[:] = self.g.x.array - self.u.x.array
@@ -538,9 +543,10 @@ class _Lifting:
         alpha = 1.0
         if self.limit is not None:  # no leaflet moved through another by the lifting
             n = self.u.function_space.dofmap.index_map.size_local * 3
-            alpha = self.limit(self.u.x.array[:n], self.w.x.array[:n])
+            alpha = self.limit(self.u.x.array[:n], self.w.x.array[:n], squeeze=squeeze)
         self.u.x.array[:] += alpha * self.w.x.array
         self.u.x.scatter_forward()
+        return alpha
 
 
 def _clamp(V, dofs, loop_motion):

@@ -247,8 +247,11 @@ class PointTerms:
         self.time_s += time.perf_counter() - t0
         return e
 
-    def step_limit(self, x_owned: np.ndarray, dx_owned: np.ndarray) -> float:
-        """Fraction of the update ``dx`` the terms allow (collective; 1 without limits)."""
+    def step_limit(self, x_owned: np.ndarray, dx_owned: np.ndarray,
+                   squeeze: float | None = None) -> float:
+        """Fraction of the update ``dx`` the terms allow (collective; 1 without limits).
+        ``squeeze``: also no barrier pair closer than this fraction of its distance at ``x``
+        (the terms' ``squeeze_limit``: for moves the potential does not judge)."""
         limiters = [t for t in self.terms if hasattr(t, "step_limit")]
         if not limiters:
             return 1.0
@@ -257,7 +260,11 @@ class PointTerms:
         dx = self.view.gather(dx_owned)
         alpha = 1.0
         if x is not None:
-            alpha = min([1.0] + [t.step_limit(x, dx) for t in limiters])
+            for t in limiters:
+                a = t.step_limit(x, dx)
+                if squeeze is not None and hasattr(t, "squeeze_limit"):
+                    a = t.squeeze_limit(x, dx, a, keep=squeeze)
+                alpha = min(alpha, a)
         alpha = self.view.comm.bcast(alpha, root=0)
         self.limit_s += time.perf_counter() - t0
         return alpha

@@ -34,9 +34,9 @@ _ids = itertools.count()
 REMOVAL_ITERATIONS = 4
 #: largest displacement of one pseudo-time update, x the model's length scale (sqrt(area))
 MAX_MOVE = 0.1
-#: pseudo-time steps over which a prescribed motion may be spread, x solver.ramp_steps (it
-#: advances with the accepted steps only; see solve())
-RAMP_SLACK = 5
+#: a prescribed motion's lifting of the interior brings no contact pair closer than this
+#: fraction of its gap (_AdaptiveRamp)
+LIFT_SQUEEZE = 0.5
 #: default solver.max_steps of each method
 MAX_STEPS = {"load-steps": 400, "pseudo-time": 1500}
 #: on a sequenced level (a closed coarser state carried over), pseudo-time updates are solved
@@ -237,42 +237,71 @@ def _motion_ramp(model: Model):
 class _AdaptiveRamp:
     """The prescribed motion over the pseudo-time steps, advancing with the accepted ones.
 
-    PseudoTransient calls its ramp before each of its first ``ramp_steps`` steps, refused ones
-    too. The first steps of a valve are refused (wild updates from the slack start), and a ramp
-    counted in them ran ahead of the state: the whole ring motion in one update with the
-    interior frozen by the damping, cells crushed, no admissible step (measured on the dilated
-    valve with a 36 mm ring). Here the motion advances by ``1 / solver.ramp_steps`` after an
-    accepted step (growing 1.5-fold after easy ones, back to that share at most), and after a
-    refused step the increment on top of the last accepted share is halved (a smaller move of
-    the clamped nodes; the exponential laws meet it with a much smaller force). The solver
-    gets ``RAMP_SLACK x ramp_steps`` calls; the last one completes the motion."""
+    PseudoTransient calls it before each step, refused ones too, until it returns True (the
+    motion complete). The first steps of a valve are refused (wild updates from the slack
+    start), and a ramp counted in them ran ahead of the state: the whole ring motion in one
+    update with the interior frozen by the damping, cells crushed, no admissible step
+    (measured on the dilated valve with a 36 mm ring). Here the motion advances by ``1 /
+    solver.ramp_steps`` after an accepted step (growing 1.5-fold after easy ones, back to that
+    share at most), and after a refused step the state goes back to where it was before the
+    last call and the increment is halved.
+
+    Each call lifts the interior onto the moved rim (``model.lift``) as far as the contact
+    allows: no crossing, and no barrier pair brought closer than :data:`LIFT_SQUEEZE` of its
+    gap (:meth:`mvfem.contact.Contact.squeeze_limit`). Where the lifting is cut short, the
+    motion (rim, papillary tips, ties) is set back to the fraction it reached, so that the
+    Dirichlet values are where the clamped nodes are: the update after it moves none of
+    them, and its potential is compared with that of a state on the same boundary values.
+
+    Until session 41 the lifting was bounded by the collision check alone and the motion's
+    fraction was the one asked for: on the dilated valve with the 36 mm ring (3 mm mesh) the
+    lifts brought two facing edges from 0.3 mm to 2e-10 mm, the clamped nodes lagged their
+    Dirichlet values, every update's jump of them raised the potential and was refused down
+    to dt = 1e-13, and after ``5 x ramp_steps`` calls the rest of the motion imposed at once
+    sent the residual to 1e35 (README, "Repairs")."""
 
     def __init__(self, model: Model, motion, history):
         self.model, self.motion, self.history = model, motion, history
         self.base = 1.0 / max(model.ramp_steps, 1)
         self.inc = self.base
-        self.accepted_share = 0.0
-        self.trial = 0.0
+        #: the fraction of the motion the state is at (the lifted rim's, the tips', ties')
+        self.share = 0.0
         self.seen = 0
+        self._saved: tuple[float, np.ndarray] | None = None  # (share, u) before the last call
         self.before = model.scene["solver"]["motion"] == "before-pressure"
+        #: the pseudo-time step whose call completed the motion (None before)
+        self.completed_at: int | None = None
 
     def __call__(self, f: float) -> bool:
+        m = self.model
         h = self.history()
-        if len(h) > self.seen:  # the outcome of the step taken with the last share
+        if len(h) > self.seen:  # the outcome of the step taken from the last call's state
             if h[-1].accepted:
-                self.accepted_share = self.trial
                 self.inc = min(self.inc * 1.5, self.base)
             else:
                 self.inc *= 0.5
+                if self._saved is not None:
+                    self.share, u = self._saved
+                    m.u.x.array[:] = u
+                    m.u.x.scatter_forward()
             self.seen = len(h)
-        share = 1.0 if f >= 1.0 else min(self.accepted_share + self.inc, 1.0)
-        self.trial = share
-        log.debug(f"    prescribed motion at {share:.4f} (accepted {self.accepted_share:.4f})")
+        start = self.share
+        share = min(start + self.inc, 1.0)
+        if self.before and start < 0.5:  # the motion alone up to 0.5 (see _motion_ramp)
+            share = min(share, 0.5)
+        lifted = m.lift is not None
+        self._saved = (start, m.u.x.array.copy()) if lifted else None
         _, fp = self.motion(share)
-        m = self.model
+        if lifted:  # the interior follows the rim (the solver's u is the state)
+            alpha = m.lift(squeeze=LIFT_SQUEEZE)
+            if alpha < 1.0:
+                share = start + alpha * (share - start)
+                _, fp = self.motion(share)
         m.pressure.value = fp * m.p_target if self.before else m.p_target
-        if m.lift is not None:  # the interior follows the rim (the solver's u is the state)
-            m.lift()
+        log.debug(f"    prescribed motion at {share:.4f} (from {start:.4f})")
+        self.share = share
+        if share >= 1.0:
+            self.completed_at = len(h) + 1
         return share >= 1.0
 
 
@@ -657,11 +686,10 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     if comm.rank == 0 and progress:
         log.info(f"{scene.data['title'] or scene.source}: {model.V.dofmap.index_map.size_global * 3} "
                  f"dofs, pressure {model.p_target / 1e3:g} kPa, {method}")
-    ptc = None
+    ptc = hook = None
     if method == "pseudo-time":
         model.pressure.value = model.p_target
         motion = _motion_ramp(model)
-        hook = None
         if motion is not None:
             hook = _AdaptiveRamp(model, motion, lambda: ptc.history)
         on_step = _PseudoTimeProgress(load_norm, progress)
@@ -681,7 +709,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                               convex_window=window,
                               symmetric_above=sym_above, max_steps=max_steps, on_step=on_step,
                               max_move=MAX_MOVE * model.length_scale, ramp=hook,
-                              ramp_steps=RAMP_SLACK * model.ramp_steps if hook is not None else 0)
+                              ramp_steps=max_steps if hook is not None else 0)
         info = ptc.run()
         load_steps, newton_its = ptc.accepted_steps, len(ptc.history)
         convexified, symmetric = ptc.convexified, ptc.symmetric_solves
@@ -750,6 +778,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     if model.motion:
         summary["motion"] = {**model.motion, "ramp_steps": model.ramp_steps,
                              "order": s["motion"]}
+        if hook is not None:  # the pseudo-time step whose call completed it (None: it did not)
+            summary["motion"]["completed_at_step"] = hook.completed_at
     if seq is not None:
         summary["coarse_start"] = seq
     result = Result(summary=summary, u=u, model=model, out=Path(out) if out else None)

@@ -724,7 +724,10 @@ class PseudoTransient:
     #: each of the first ``ramp_steps`` steps, so the motion is spread over them. It may move
     #: ``problem.u`` (which holds the current state when it is called: a lifting of the new
     #: Dirichlet values into the interior), and may return True once the motion is complete
-    #: (no more calls; the steps go on to convergence)
+    #: (no more calls; the steps go on to convergence); one that returns None is complete
+    #: after its call with ``f = 1``. A run whose motion is not complete within ``ramp_steps``
+    #: calls has not converged (the ramp's ``share`` attribute, the fraction reached, goes
+    #: into its stop reason)
     ramp: Callable[[float], None] | None = None
     ramp_steps: int = 0
     history: list[PseudoTimeRecord] = field(default_factory=list)
@@ -843,7 +846,8 @@ class PseudoTransient:
                     pb._update_u(x)
                     done = self.ramp(min(its / max(self.ramp_steps, 1), 1.0))
                     pb.u.vector.copy(x)  # the state, moved by the ramp or not
-                    ramped = bool(done) or its >= max(self.ramp_steps, 1)
+                    # complete when it says so, or (a ramp that does not say) at f = 1
+                    ramped = bool(done) if done is not None else its >= max(self.ramp_steps, 1)
                     r = pb.evaluate_residual(x)  # the Dirichlet rows now hold x - g
                     E, held = None, None
                 pb.b.copy(rhs)  # F(x), still in b from the last evaluation at x
@@ -955,7 +959,11 @@ class PseudoTransient:
                 k = max(min(k / ratio, k / self.min_growth), self.k_min * self.k0)
                 trial.copy(x)
                 r, E, held = r_new, E_new, None
-            converged = r <= self.atol
+            if not ramped and self.stop_reason:
+                share = getattr(self.ramp, "share", None)
+                self.stop_reason += ("; the prescribed motion is not complete" if share is None
+                                     else f"; the prescribed motion reached {100 * share:.1f} %")
+            converged = r <= self.atol and ramped
             return SolveInfo(converged, its, "CONVERGED_PSEUDO_TIME" if converged
                              else "DIVERGED_PSEUDO_TIME", r)
         finally:

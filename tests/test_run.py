@@ -1040,3 +1040,60 @@ def test_lumped_mass_is_positive_and_holds_the_area(degree):
         assert MPI.COMM_WORLD.allreduce(float(w.array_r[free].min(initial=1.0)), op=MPI.MIN) > 0
         assert float(np.abs(w.array_r[~free]).max(initial=0.0)) == 0.0
     assert 3 * 0.99 * area < w.sum() < 3 * area  # unclamped: every dof counts
+
+
+def test_prescribed_motion_steps_back_on_a_refusal_and_stops_where_the_lifting_did():
+    """``_AdaptiveRamp`` on a stand-in model (a 4-dof rim moving to ``full``, ramp_steps 4: a
+    share of 0.25 a call): a lifting cut to half of its way leaves the motion at 0.125, with
+    the Dirichlet values there too (the rim where the lifting took it); an accepted step
+    lets it on by 0.25; a refused one puts the state and the share back where they were
+    before that call, and halves the increment; the call that reaches 1 says so and names
+    the step."""
+    from types import SimpleNamespace
+
+    from mvfem.run import _AdaptiveRamp
+
+    full = np.array([1.0, -2.0, 0.5, 3.0])
+    u = SimpleNamespace(x=SimpleNamespace(array=np.zeros(4), scatter_forward=lambda: None))
+    g = np.zeros(4)
+    cuts = iter([0.5, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
+
+    def lift(squeeze=None):
+        assert squeeze == run_mod.LIFT_SQUEEZE
+        alpha = next(cuts)
+        u.x.array += alpha * (g - u.x.array)
+        return alpha
+
+    def motion(share):
+        g[:] = share * full
+        return share, share
+
+    model = SimpleNamespace(ramp_steps=4, u=u, lift=lift, pressure=SimpleNamespace(value=0.0),
+                            p_target=16e3, scene={"solver": {"motion": "with-pressure"}})
+    history = []
+    ramp = _AdaptiveRamp(model, motion, lambda: history)
+
+    def step(accepted):
+        history.append(SimpleNamespace(accepted=accepted))
+
+    assert ramp(0.0) is False
+    assert ramp.share == pytest.approx(0.125)
+    assert np.allclose(u.x.array, 0.125 * full) and np.allclose(g, u.x.array)
+    assert model.pressure.value == 16e3
+    step(True)
+    ramp(0.0)
+    assert ramp.share == pytest.approx(0.375) and np.allclose(u.x.array, 0.375 * full)
+    step(False)
+    ramp(0.0)   # back to 0.125, then half the increment
+    assert ramp.share == pytest.approx(0.25) and np.allclose(u.x.array, 0.25 * full)
+    shares = []
+    while True:
+        step(True)
+        done = ramp(0.0)
+        shares.append(ramp.share)
+        if done:
+            break
+    # increments 0.1875, 0.25, 0.25, then the rest
+    assert shares == pytest.approx([0.4375, 0.6875, 0.9375, 1.0])
+    assert ramp.completed_at == len(history) + 1 == 7
+    assert np.allclose(u.x.array, full)

@@ -344,6 +344,35 @@ def test_contact_step_limit_stops_a_sheet_short_of_the_other():
     assert c.step_limit(x, dx) == pytest.approx(0.8 * 0.75, rel=1e-9)
 
 
+def test_squeeze_limit_keeps_half_of_every_gap():
+    """A move the potential does not judge (a prescribed motion's lifting) may bring no
+    barrier pair closer than half its gap, or half the thickness for a pair coming into it.
+    Sheets 0.3 mm apart, the upper moved 0.5 mm down: the collision check allows 0.48 (gap
+    0.06 mm); half the gap, 0.15 mm, is kept up to alpha = 0.3, and the halvings from 0.48
+    give 0.24 (gap 0.18 mm). Sheets 0.6 mm apart (outside the 0.5 mm thickness) moved 0.5
+    mm down: no crossing, but the pairs entering the thickness must stay 0.25 mm apart,
+    alpha <= 0.7: 0.5. Sliding along at a constant gap squeezes nothing."""
+    from mvfem.contact import Contact
+
+    view, x = _two_sheets(0.3)
+    c = Contact(view, 0.5, 1e5, exclusion=0.2)
+    dx = np.zeros_like(x)
+    dx[len(x) // 2:, 2] = -0.5
+    alpha = c.squeeze_limit(x, dx, c.step_limit(x, dx))
+    assert alpha == pytest.approx(0.24, rel=1e-12)
+    assert c.penetration(x + alpha * dx)["min_distance_mm"] == pytest.approx(0.18, rel=1e-9)
+    assert c.squeeze_limit(x, dx, 0.48, keep=0.1) == 0.48  # a looser keep: the whole bound
+    view, x = _two_sheets(0.6)
+    c = Contact(view, 0.5, 1e5, exclusion=0.2)
+    assert c.step_limit(x, dx) == 1.0
+    assert c.squeeze_limit(x, dx, 1.0) == 0.5
+    view, x = _two_sheets(0.3)
+    c = Contact(view, 0.5, 1e5, exclusion=0.2)
+    dx = np.zeros_like(x)
+    dx[len(x) // 2:, :2] = [1.3, 0.4]
+    assert c.squeeze_limit(x, dx, 1.0) == 1.0
+
+
 @pytest.mark.mpi
 def test_laplace_coordinate_on_the_valve_runs_from_annulus_to_free_edge():
     """phi is 0 on the annulus and 1 on the free edges; its gradient (the radial direction)
