@@ -705,6 +705,11 @@ class PseudoTransient:
     #: 4 gave nothing), but the demo started from a coarser closure (``coarse_start``) 10 %
     #: more steps (README, "Solving")
     convex_window: int = 0
+    #: the first step's weight (``k0`` when None); ``k0`` stays the threshold of Newton's
+    #: regime and the reference of the restarts. Where the first updates at ``k0`` are
+    #: refused anyway (a nested level's transferred state: ``mvfem.run.NESTED_FIRST_WEIGHT``),
+    #: a start at the weight of the first accepted one skips them on the same path
+    k_first: float | None = None
     #: in pseudo-time (``k >= k0``, before Newton's regime), solve every update with the
     #: point terms' blocks projected (IPC's projected Newton), the exact ones kept for
     #: Newton's regime. Off: on the demo refined twice 424 s against 544 s, but the refined
@@ -757,6 +762,8 @@ class PseudoTransient:
                 self.stop_reason = "the residual of the initial state is not finite"
                 return SolveInfo(False, 0, "DIVERGED_FNORM_NAN", r)
             k, in_a_row, its, monotone, restarts = self.k0, 0, 0, False, 0
+            if self.k_first is not None:
+                k = self.k_first
             merit = pb.evaluate_energy if self.use_energy and pb.has_energy else None
             E = None  # the potential at x, once needed
 

@@ -246,6 +246,22 @@ def test_pseudo_time_convexifies_where_newton_climbs():
     assert not all(r.accepted for r in ptc.history)
 
 
+def test_pseudo_time_starts_at_its_first_weight():
+    """``PseudoTransient.k_first``: the first step is taken at that weight, the weight then
+    evolving as from any start. The double well from z = 0.05 with ``k0`` = 0.5: from ``k0``
+    the first update goes over the hump to the bottom at z < 0; from a first weight 8 x
+    ``k0`` (4), damped, it slides back to the bottom at z > 0; both bottoms are the closed
+    form's, z^3 - z + c z / 18 = 0."""
+    root = np.sqrt(1 - 0.01 / 18)
+    for first, bottom in ((None, -root), (4.0, root)):
+        info, ptc, z, _ = _one_node(lambda X: _DoubleWell(X, False), f"wellfirst{first}_",
+                                    z0=0.05, k0=0.5, k_first=first, max_steps=100,
+                                    convexify=True)
+        assert info.converged
+        assert ptc.history[0].weight == (0.5 if first is None else first)
+        assert abs(z - bottom) < 1e-9
+
+
 def test_pseudo_time_keeps_projecting_for_a_window_after_a_climb():
     """``PseudoTransient.convex_window``: after an accepted update that had to be solved
     again with the projected blocks, the next ``convex_window`` accepted updates are solved
@@ -927,24 +943,34 @@ def test_solve_runs_openblas_on_one_thread(monkeypatch):
         lib.openblas_set_num_threads(before)
 
 
-@pytest.mark.parametrize("changes, windows", [
-    ({"mesh.size": 5.0, "mesh.refine": 1}, [0, run_mod.NESTED_CONVEX_WINDOW]),
-    ({"mesh.size": 4.0, "solver.coarse_start": 5.0}, [0, 0]),
+@pytest.mark.parametrize("changes, windows, firsts", [
+    ({"mesh.size": 5.0, "mesh.refine": 1}, [0, run_mod.NESTED_CONVEX_WINDOW],
+     [None, run_mod.NESTED_FIRST_WEIGHT]),
+    ({"mesh.size": 4.0, "solver.coarse_start": 5.0}, [0, 0], [None, None]),
 ])
-def test_only_nested_levels_keep_projecting_after_a_climb(monkeypatch, changes, windows):
+def test_only_nested_levels_keep_projecting_after_a_climb(monkeypatch, changes, windows,
+                                                          firsts):
     """The window of projected blocks after a convexified re-solve
     (``PseudoTransient.convex_window``) is opened on nested levels only: the refined level of
     ``mesh.refine`` gets ``NESTED_CONVEX_WINDOW`` (2), while the open-state start below it and
     a level started from a coarser mesh's closure (``solver.coarse_start``, where it cost 10 %
-    more steps; README, "Solving") keep none. Each level's solve is recorded as it starts."""
+    more steps; README, "Solving") keep none. Likewise the first weight above the start
+    weight (``PseudoTransient.k_first``, ``NESTED_FIRST_WEIGHT`` x ``k0``): nested levels
+    only, as measured. Each level's solve is recorded as it starts."""
     from mvfem.scene import load_scene
     from mvfem.solver import PseudoTransient
 
     assert run_mod.NESTED_CONVEX_WINDOW == 2 and PseudoTransient.convex_window == 0
-    seen, run = [], PseudoTransient.run
+    assert PseudoTransient.k_first is None
+    seen, first, run = [], [], PseudoTransient.run
 
     def recorded(self):
         seen.append(self.convex_window)
+        first.append(None if self.k_first is None else self.k_first / self.k0)
+        if self.k_first is not None:  # the solve starts there
+            out = run(self)
+            assert self.history[0].weight == self.k_first
+            return out
         return run(self)
 
     monkeypatch.setattr(PseudoTransient, "run", recorded)
@@ -952,6 +978,7 @@ def test_only_nested_levels_keep_projecting_after_a_climb(monkeypatch, changes, 
     r = solve(scene.with_changes(changes), progress=False, write=False)
     assert r.converged and r.summary["coarse_start"]["used"]
     assert seen == windows
+    assert first == [None if f is None else pytest.approx(f) for f in firsts]
 
 
 @pytest.mark.parametrize("changes", [{"mesh.refine": 1}, {"solver.coarse_start": 8.0}])
