@@ -751,7 +751,9 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     if final_ok and q_max >= MAX_EXPONENT:
         final_ok, stop_reason = False, (f"the exponential law reached its exponent cap "
                                         f"({q_max:.0f}): no physical equilibrium")
-    converged = bool(final_ok and np.isfinite(rel) and rel <= 10 * s["tolerance"])
+    # a pseudo-time run may end on its roundoff floor, above the tolerance (PseudoTransient)
+    floor = ptc.floor / f_norm if ptc is not None and ptc.at_floor and f_norm > 0 else 0.0
+    converged = bool(final_ok and np.isfinite(rel) and rel <= 10 * max(s["tolerance"], floor))
     if final_ok and not converged:
         stop_reason = (f"equilibrium residual {rel:.3g} of the load exceeds 10 x the tolerance "
                        f"{s['tolerance']:g}")
@@ -783,6 +785,12 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     if ptc is not None:
         summary["convexified_tangents"] = convexified
         summary["symmetric_tangents"] = symmetric
+        if ptc.at_floor:  # converged where roundoff alone gives the residual (above tolerance)
+            summary["residual_floor"] = floor
+            if comm.rank == 0:
+                log.info(f"  converged at the roundoff floor: residual {rel:.3g} of the load, "
+                         f"above the tolerance {s['tolerance']:g}, is what roundoff of the "
+                         f"positions gives at this stiffness ({floor:.3g})")
     if model.motion:
         summary["motion"] = {**model.motion, "ramp_steps": model.ramp_steps,
                              "order": s["motion"]}

@@ -246,6 +246,48 @@ def test_pseudo_time_convexifies_where_newton_climbs():
     assert not all(r.accepted for r in ptc.history)
 
 
+class _StiffCubic:
+    """A point term on node 0's z displacement, force ``K (z^3 + z - g)``: so stiff (``K`` =
+    1e14) that roundoff of the position alone leaves a residual of order ``eps K`` (its root
+    is not a double)."""
+
+    def __init__(self, X, K=1e14, g=0.7):
+        self.X, self.K, self.g = X, K, g
+
+    def __call__(self, x):
+        from mvfem.nodal import Blocks
+
+        z = x[0, 2] - self.X[0, 2]
+        f = np.zeros((1, 1, 3))
+        f[0, 0, 2] = self.K * (z ** 3 + z - self.g)
+        K = np.zeros((1, 3, 3))
+        K[0, 2, 2] = self.K * (3 * z ** 2 + 1)
+        return Blocks(np.zeros((1, 1), dtype=np.int64), f, K,
+                      self.K * (z ** 4 / 4 + z ** 2 / 2 - self.g * z))
+
+
+def test_pseudo_time_converges_at_its_roundoff_floor():
+    """A residual tolerance below what roundoff of the positions allows is never met: node 0
+    under a spring of stiffness 1e14 whose force ``K (z^3 + z - g)`` has no double root. With
+    ``roundoff_floor`` the run converges once the residual is at most eps ||K||_inf (|X|_inf +
+    |u|_inf) (about 0.08 here), at the root of z^3 + z (1 + c / 18 K) - g (numpy's roots of
+    the cubic) to 1e-12; without, the same run stops short."""
+    from mvfem.solver import EPS
+
+    c, K, g = 0.01, 1e14, 0.7
+    roots = np.roots([1.0, 0.0, 1.0 + c / (18 * K), -g])
+    root = float(roots[np.argmin(np.abs(roots.imag))].real)
+    info, ptc, z, _ = _one_node(lambda X: _StiffCubic(X, K, g), "floor1_", z0=0.0, c=c,
+                                k0=1e3, max_steps=60)
+    assert info.converged and ptc.at_floor
+    assert 1e-10 < info.residual_norm <= ptc.floor <= 10 * EPS * K * (3 * root ** 2 + 1) * 2
+    assert abs(z - root) < 1e-12
+    info, ptc, z, _ = _one_node(lambda X: _StiffCubic(X, K, g), "floor0_", z0=0.0, c=c,
+                                k0=1e3, max_steps=60, roundoff_floor=False)
+    assert not info.converged and not ptc.at_floor
+    assert abs(z - root) < 1e-12   # (as close: only the test differs)
+
+
 def test_pseudo_time_starts_at_its_first_weight():
     """``PseudoTransient.k_first``: the first step is taken at that weight, the weight then
     evolving as from any start. The double well from z = 0.05 with ``k0`` = 0.5: from ``k0``
