@@ -756,9 +756,12 @@ class PseudoTransient:
     #: against 4.7e8 on the closed demo, converged quadratically to 8e-3 (1.7e-7 of its small
     #: load) and then sat between 6.5e-3 and 8.3e-3 for its last 20 steps, above the
     #: tolerance's 4.8e-4 and below this floor, 1.4e-2; a perturbation of 1e-12 mm of the
-    #: positions changes its residual by 3.9 (README, "Repairs"). On the demo the floor is
-    #: 3e-6, 5000 x below ``atol``. ``roundoff_floor = False``: ``atol`` alone
+    #: positions changes its residual by 3.9 (README, "Converged at the roundoff floor"). On
+    #: the demo the floor is 3e-6, 5000 x below ``atol``. At most ``floor_factor`` x ``atol``
+    #: counts: a contact pair squeezed to 1e-10 mm has a barrier stiffness so large that its
+    #: floor would pass any state. ``roundoff_floor = False``: ``atol`` alone
     roundoff_floor: bool = True
+    floor_factor: float = 100.0
     floor: float = 0.0
     #: whether the run ended on the floor (its residual above ``atol``)
     at_floor: bool = False
@@ -841,8 +844,8 @@ class PseudoTransient:
                     pb.evaluate_tangent(x, k, symmetric=symmetric)
                     held = None if convex else symmetric
                     if self.roundoff_floor:
-                        self.floor = EPS * pb.tangent_norm * (extent + x.norm(
-                            PETSc.NormType.INFINITY))
+                        self.floor = min(EPS * pb.tangent_norm * (extent + x.norm(
+                            PETSc.NormType.INFINITY)), self.floor_factor * self.atol)
                 t0 = time.perf_counter()
                 solver = sym_ksp if symmetric else ksp
                 solver.setOperators(pb.A)
