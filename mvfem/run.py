@@ -273,7 +273,8 @@ class _AdaptiveRamp:
         #: the fraction of the motion the state is at (the lifted rim's, the tips', ties')
         self.share = 0.0
         self.seen = 0
-        self._saved: tuple[float, np.ndarray] | None = None  # (share, u) before the last call
+        #: (share, u) before the last call (u None without a lifting: the state was not moved)
+        self._saved: tuple[float, np.ndarray | None] | None = None
         self.before = model.scene["solver"]["motion"] == "before-pressure"
         #: the pseudo-time step whose call completed the motion (None before)
         self.completed_at: int | None = None
@@ -288,15 +289,16 @@ class _AdaptiveRamp:
                 self.inc *= 0.5
                 if self._saved is not None:
                     self.share, u = self._saved
-                    m.u.x.array[:] = u
-                    m.u.x.scatter_forward()
+                    if u is not None:
+                        m.u.x.array[:] = u
+                        m.u.x.scatter_forward()
             self.seen = len(h)
         start = self.share
         share = min(start + self.inc, 1.0)
         if self.before and start < 0.5:  # the motion alone up to 0.5 (see _motion_ramp)
             share = min(share, 0.5)
         lifted = m.lift is not None
-        self._saved = (start, m.u.x.array.copy()) if lifted else None
+        self._saved = (start, m.u.x.array.copy() if lifted else None)
         _, fp = self.motion(share)
         if lifted:  # the interior follows the rim (the solver's u is the state)
             alpha = m.lift(squeeze=LIFT_SQUEEZE)

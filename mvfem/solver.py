@@ -762,6 +762,7 @@ class PseudoTransient:
     #: floor would pass any state. ``roundoff_floor = False``: ``atol`` alone
     roundoff_floor: bool = True
     floor_factor: float = 100.0
+    #: the floor at the last tangent (capped at ``floor_factor`` x ``atol``)
     floor: float = 0.0
     #: whether the run ended on the floor (its residual above ``atol``)
     at_floor: bool = False

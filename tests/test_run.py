@@ -1173,3 +1173,16 @@ def test_prescribed_motion_steps_back_on_a_refusal_and_stops_where_the_lifting_d
     assert shares == pytest.approx([0.4375, 0.6875, 0.9375, 1.0])
     assert ramp.completed_at == len(history) + 1 == 7
     assert np.allclose(u.x.array, full)
+    # without a lifting (papillary tips, ties: point terms' parameters, the state unmoved) a
+    # refused step takes its share back too: 0.25, 0.5 accepted, refused, then 0.25 + 0.125
+    set_to = []
+    model.lift = None
+    history.clear()
+    ramp = _AdaptiveRamp(model, lambda share: (set_to.append(share), (share, share))[1],
+                         lambda: history)
+    ramp(0.0)
+    step(True)
+    ramp(0.0)
+    step(False)
+    ramp(0.0)
+    assert set_to == pytest.approx([0.25, 0.5, 0.375]) and ramp.share == pytest.approx(0.375)
