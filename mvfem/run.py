@@ -58,6 +58,16 @@ NESTED_CONVEX_WINDOW = 2
 #: the start weight (the transferred state's residual grew to 1e10-1e13), and took the first
 #: at 16 x: from there the paths are the same, two steps a level fewer (README, "Solving")
 NESTED_FIRST_WEIGHT = 16.0
+#: with a prescribed motion (a ring, annulus or papillary targets, ties drawn tight), the Fung
+#: laws' exponent is continued linearly beyond this (``model.exponent_cap``) until the run has
+#: converged; the true law then goes on from that state. A 36 mm ring on the dilated annulus
+#: compresses the cells at the annulus to 0.62-0.64 along the fibres, exponents of 19 (3 mm
+#: mesh) to 31 (2 mm): with the true law every update that moved the leaflets far overshot
+#: there, and pseudo-time crept through the closure at dt ~ 5e-6 mm/Pa for 500-1100 steps
+#: (the 2 mm ring with neochordae stopped at 1500). Capped there the leaflets close at the
+#: pace of the demo: the 3 mm ring 265 + 19 steps instead of 825, the 2 mm ring with
+#: neochordae 677 + 36 (caps of 5, 15 and 20: 455, 655 and 825 steps; README, "Repairs")
+MOTION_CAP = 10.0
 
 
 @dataclass(frozen=True)
@@ -694,12 +704,13 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     if comm.rank == 0 and progress:
         log.info(f"{scene.data['title'] or scene.source}: {model.V.dofmap.index_map.size_global * 3} "
                  f"dofs, pressure {model.p_target / 1e3:g} kPa, {method}")
-    ptc = hook = None
+    ptc = hook = cap_raised_at = None
     if method == "pseudo-time":
         model.pressure.value = model.p_target
         motion = _motion_ramp(model)
         if motion is not None:
             hook = _AdaptiveRamp(model, motion, lambda: ptc.history)
+            model.exponent_cap.value = MOTION_CAP
         on_step = _PseudoTimeProgress(load_norm, progress)
         k0 = model.stabiliser_scale
         # a sequenced level's Newton's regime begins 1e4 x above the usual start's weight: the
@@ -727,8 +738,15 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
             # the soft-capped problem's equilibrium: the true one only where no cell is
             # beyond the cap; else go on with the true cap from here
             model.exponent_cap.value = MAX_EXPONENT
-            seq["cap_raised_at_step"] = newton_its
-            if info.converged and not _relaxed(model):
+            if seq is not None:
+                seq["cap_raised_at_step"] = newton_its
+            cap_raised_at = newton_its
+            relaxed = _relaxed(model)
+            if hook is not None and comm.rank == 0 and progress and info.converged:
+                log.info(f"  converged with the Fung laws' exponent capped at {MOTION_CAP:g} "
+                         f"(step {newton_its}); " + ("no cell is near the cap" if relaxed else
+                                                     "the true law goes on from there"))
+            if info.converged and not relaxed:
                 ptc = PseudoTransient(problem, k0=model.stabiliser_scale, atol=tight_atol,
                                       symmetric=sequenced, symmetric_above=sym_above,
                                       convex_window=window,
@@ -798,6 +816,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                              "order": s["motion"]}
         if hook is not None:  # the pseudo-time step whose call completed it (None: it did not)
             summary["motion"]["completed_at_step"] = hook.completed_at
+            # the step after which the laws' exponent was no longer capped (MOTION_CAP)
+            summary["motion"]["cap_raised_at_step"] = cap_raised_at
     if seq is not None:
         summary["coarse_start"] = seq
     result = Result(summary=summary, u=u, model=model, out=Path(out) if out else None)

@@ -357,6 +357,53 @@ def test_ring_reduces_the_orifice_of_the_dilated_valve(unrepaired, tmp_path):
     assert after["annulus_area_mm2"] == pytest.approx(np.pi / 2 * 18 * 27, rel=0.01)
 
 
+def test_ring_closes_under_the_exponent_cap_and_ends_in_the_true_laws_equilibrium():
+    """A prescribed motion's run closes with the Fung laws' exponent capped
+    (``mvfem.run.MOTION_CAP``) and then goes on with the true law: the 36 mm ring compresses
+    the cells at the annulus beyond the cap, so the capped equilibrium is not the true one.
+    Checked on a model built afresh from the scene, with its own residual: at the returned
+    state the true law's residual is within the tolerance, the capped law's is not (so the
+    check can tell the two apart). Before the cap the ring crept through its closure at dt ~
+    5e-6 mm/Pa (825 steps here; the 2 mm ring with neochordae stopped at 1500)."""
+    from mpi4py import MPI
+
+    from mvfem.model import MAX_EXPONENT, build_model
+    from mvfem.run import MOTION_CAP, _load_norm, _max_exponent
+    from mvfem.solver import SNESProblem
+
+    scene = mvfem.load_scene(PATHOLOGICAL).with_changes({**COARSE, **_repair("ring_d36.toml")})
+    r = mvfem.solve(scene, progress=False, outputs=False)
+    s = r.summary
+    assert s["converged"], s["stop_reason"]
+    raised = s["motion"]["cap_raised_at_step"]
+    print(f"ring: {s['newton_iterations']} steps, the true law from step {raised}, largest "
+          f"exponent {_max_exponent(r.model):.1f}, {s['wall_time_s']:.1f} s")
+    assert raised is not None and 0 < raised < s["newton_iterations"]
+    assert s["newton_iterations"] < 600  # 284 steps (825 before the cap)
+
+    model = build_model(scene, MPI.COMM_SELF)  # the true law: its cap at MAX_EXPONENT
+    assert float(model.exponent_cap.value) == MAX_EXPONENT
+    model.ramp(1.0)  # the ring's Dirichlet values
+    model.pressure.value = model.p_target
+    model.u.x.array[:] = r.u.x.array
+    model.u.x.scatter_forward()
+    pb = SNESProblem(model.residual, model.u, model.bcs, prefix="captest_",
+                     point_terms=model.point_terms, potential=model.energy,
+                     load=model.load_form, sparsity=model.sparsity)
+    load = _load_norm(model)
+    tol = scene["solver"]["tolerance"]
+    x = model.u.vector.copy()
+    true_law = pb.evaluate_residual(x) / load
+    assert _max_exponent(model) > MOTION_CAP
+    model.exponent_cap.value = MOTION_CAP
+    capped = pb.evaluate_residual(x) / load
+    print(f"residual at the returned state: true law {true_law:.3g}, capped law {capped:.3g} "
+          f"of the load (tolerance {tol:g})")
+    assert true_law <= 10 * tol
+    assert capped > 1e3 * tol
+    pb.destroy()
+
+
 @pytest.mark.slow
 def test_neochordae_stop_the_prolapse(tmp_path):
     """The healthy annulus with the posterior chordae over 0.2-0.8 ruptured (flail, issue 5's
