@@ -43,7 +43,7 @@ __all__ = ["COLUMNS", "DIASTOLIC_PRESSURE", "compare", "load_repair"]
 DIASTOLIC_PRESSURE = -500.0
 COLUMNS = ("case", "title", "systole", "regurgitant_orifice_area_mm2",
            "projected_orifice_area_mm2", "leak_gap_area_mm2", "coaptation_length_mm",
-           "coaptation_area_mm2", "tenting_height_mm", "annulus_area_mm2", "stress_p95_Pa",
+           "coaptation_trace_length_mm", "coaptation_area_mm2", "tenting_height_mm", "annulus_area_mm2", "stress_p95_Pa",
            "stress_max_Pa", "chordae_force_total_N", "chordae_force_max_N",
            "neochord_force_total_N", "tie_force_max_N", "diastole",
            "diastolic_orifice_area_mm2", "diastolic_orifice_count", "diastolic_orifice_areas_mm2",
@@ -205,7 +205,8 @@ def _rows(study, out: Path, titles: dict) -> list[dict]:
                 row["systole"] = status
                 row["run_dir"] = str(d.relative_to(out))
                 for k in ("regurgitant_orifice_area_mm2", "projected_orifice_area_mm2",
-                          "leak_gap_area_mm2", "coaptation_length_mm", "coaptation_area_mm2",
+                          "leak_gap_area_mm2", "coaptation_length_mm",
+                          "coaptation_trace_length_mm", "coaptation_area_mm2",
                           "tenting_height_mm", "annulus_area_mm2"):
                     row[k] = v.get(k)
                 ch = v.get("chordae_force_N") or {}
@@ -258,6 +259,7 @@ def table_text(rows: list[dict]) -> str:
     cols = [("case", "case", "{}"), ("systole", "systole", "{}"),
             ("regurgitant_orifice_area_mm2", "orifice mm2", "{:.1f}"),
             ("coaptation_length_mm", "coapt. length mm", "{:.2f}"),
+            ("coaptation_trace_length_mm", "coapt. trace mm", "{:.2f}"),
             ("coaptation_area_mm2", "coapt. area mm2", "{:.0f}"),
             ("tenting_height_mm", "tenting mm", "{:.2f}"),
             ("stress_p95_Pa", "stress p95 kPa", "k{:.0f}"),

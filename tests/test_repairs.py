@@ -22,6 +22,7 @@ numbers in README "Repairs".
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -517,6 +518,10 @@ def test_repair_compare_end_to_end(tmp_path):
     assert annulus["ring_d36"] == pytest.approx(np.pi / 2 * 18 * 27, rel=0.01)
     assert annulus["unrepaired"] == pytest.approx(np.pi * 21 * 27.75, rel=0.02)
     assert float(rows[2]["tie_force_max_N"]) > 0.0
+    for row in rows:  # each number is its systolic run's summary value
+        v = json.loads((out / row["run_dir"] / "summary.json").read_text())["valve"]
+        for key in ("coaptation_length_mm", "coaptation_trace_length_mm"):
+            assert float(row[key]) == pytest.approx(v[key], rel=1e-5, abs=1e-9), key  # 6 digits
     table = [line for line in r.stdout.splitlines() if line.startswith("| ")]
     assert len(table) == 1 + len(rows)  # header + a line per case
     for name in ("comparison.png", "shapes.png"):
