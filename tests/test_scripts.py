@@ -255,3 +255,31 @@ def test_contact_corrugation_script():
                      "--heights", "0.6"], capture_output=True, text=True, env=_env(),
                     timeout=120, check=False)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_path_spread_script(tmp_path):
+    """scripts/path_spread.py closes one repaired scene along two paths (ramp_steps 10 and
+    20, the 5 mm pathological valve with the 36 mm ring, about 9 s) and prints a row a run and
+    their spread, which is the largest minus the smallest of the runs it wrote; bad input is
+    one line and exit code 2."""
+    out = tmp_path / "spread.json"
+    scene = ROOT / "scripts" / "scenes" / "valve_pathological.toml"
+    cmd = [sys.executable, str(ROOT / "scripts" / "path_spread.py"), str(scene), "--repair",
+           str(ROOT / "scripts" / "scenes" / "repairs" / "ring_d36.toml"), "--set",
+           "mesh.size=5", "--ramp-steps", "10,20", "--out", str(out)]
+    r = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = [line for line in r.stdout.splitlines() if line.startswith("| with-pressure")]
+    assert len(rows) == 2
+    d = json.loads(out.read_text())
+    assert [x["ramp_steps"] for x in d["runs"]] == [10, 20]
+    assert all(x["converged"] for x in d["runs"])
+    for k in ("coaptation_length_mm", "coaptation_trace_length_mm", "tenting_height_mm"):
+        vals = [x[k] for x in d["runs"]]
+        assert d["spread"][k] == pytest.approx(max(vals) - min(vals))
+    bad = run_child([sys.executable, str(ROOT / "scripts" / "path_spread.py"), str(scene),
+                     "--motion", "sideways"], capture_output=True, text=True, env=_env(),
+                    timeout=120)
+    assert bad.returncode == 2
+    assert bad.stderr.strip().splitlines() == [
+        "path_spread: --motion: 'sideways': each must be with-pressure or before-pressure"]
