@@ -6,8 +6,10 @@ every run is one ``mvfem run`` process of the study runner (:mod:`mvfem.study`: 
 ``processes`` at a time, one line per finished run). Then:
 
 - ``comparison.csv``: one row per case (``COLUMNS``): regurgitant orifice area (with its
-  projected and leak-gap parts), coaptation length and area, tenting height, the 95th
-  percentile and the peak of the per-facet radial Cauchy stress over both leaflets, chordae
+  projected and leak-gap parts), coaptation length (stepped, and the continuous trace
+  length, which moves less with the solver's path: README "Repairs") and area, tenting
+  height, the 95th percentile and the peak of the per-facet radial Cauchy stress over both
+  leaflets, chordae
   forces (native and neochordae), tie (clip, suture) forces, and from the diastolic run the
   orifice area and the number of separate orifices;
 - ``comparison.png``: those numbers as bars, one per case;
@@ -43,9 +45,9 @@ __all__ = ["COLUMNS", "DIASTOLIC_PRESSURE", "compare", "load_repair"]
 DIASTOLIC_PRESSURE = -500.0
 COLUMNS = ("case", "title", "systole", "regurgitant_orifice_area_mm2",
            "projected_orifice_area_mm2", "leak_gap_area_mm2", "coaptation_length_mm",
-           "coaptation_trace_length_mm", "coaptation_area_mm2", "tenting_height_mm", "annulus_area_mm2", "stress_p95_Pa",
-           "stress_max_Pa", "chordae_force_total_N", "chordae_force_max_N",
-           "neochord_force_total_N", "tie_force_max_N", "diastole",
+           "coaptation_trace_length_mm", "coaptation_area_mm2", "tenting_height_mm",
+           "annulus_area_mm2", "stress_p95_Pa", "stress_max_Pa", "chordae_force_total_N",
+           "chordae_force_max_N", "neochord_force_total_N", "tie_force_max_N", "diastole",
            "diastolic_orifice_area_mm2", "diastolic_orifice_count", "diastolic_orifice_areas_mm2",
            "run_dir")
 #: keys whose values are file names (resolved against the repair file's directory)
