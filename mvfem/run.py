@@ -758,6 +758,16 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                 newton_its += len(ptc.history)
                 convexified += ptc.convexified
                 symmetric += ptc.symmetric_solves
+                if hook is not None and not info.converged:
+                    # a 32 mm ring on the dilated valve: capped equilibrium at step 433, then
+                    # the true law's exponent 42.5 at the annulus, a tangent whose diagonal
+                    # spans 1e15, and 1067 steps at dt ~ 1e-14 mm/Pa (README, "Repairs")
+                    ptc.stop_reason += (
+                        f"; it had converged with the Fung laws' exponent capped at "
+                        f"{MOTION_CAP:g} (step {cap_raised_at}), but with the true law the "
+                        f"largest exponent is {_max_exponent(model):.1f}: the prescribed motion "
+                        f"compresses or stretches cells far beyond the law's range (a ring "
+                        f"too small for this annulus?)")
         final_ok, stop_reason, t_reached = info.converged, ptc.stop_reason, 1.0
     else:
         final_ok, stop_reason, t_reached, load_steps, newton_its = _load_steps(

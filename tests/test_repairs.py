@@ -435,6 +435,27 @@ def test_full_ring_and_band_close_the_dilated_valve(unrepaired, shape, tmp_path)
 
 
 @pytest.mark.slow
+def test_ring_too_small_says_why_it_stops():
+    """A 32 mm ring on the dilated annulus (its perimeter 0.57 of the annulus's) converges
+    with the exponent capped, but the true law then needs an exponent of 42 at the annulus
+    (May-Newman-Yin's c2 (lambda - 1)^4 at lambda 0.57): the run stops (here after 600
+    steps) and its stop reason says where it had converged and how far beyond the law's range
+    the cells are, not only that the residual is above the tolerance."""
+    import re
+
+    scene = mvfem.load_scene(PATHOLOGICAL).with_changes(
+        {**COARSE, "repair.ring": {"shape": "d-shaped", "size": 32.0}, "solver.max_steps": 600})
+    s = mvfem.solve(scene, progress=False, write=False, outputs=False).summary
+    print(s["stop_reason"])
+    assert not s["converged"]
+    assert s["motion"]["cap_raised_at_step"] < 600
+    assert f"capped at 10 (step {s['motion']['cap_raised_at_step']})" in s["stop_reason"]
+    q = float(re.search(r"largest exponent is ([0-9.]+)", s["stop_reason"]).group(1))
+    assert q > 30.0
+    assert "ring too small" in s["stop_reason"]
+
+
+@pytest.mark.slow
 def test_neochordae_stop_the_prolapse(tmp_path):
     """The healthy annulus with the posterior chordae over 0.2-0.8 ruptured (flail, issue 5's
     case): three neochordae to the flail's free edge at the native marginal rest length
