@@ -761,7 +761,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                 if hook is not None and not info.converged:
                     # a 32 mm ring on the dilated valve: capped equilibrium at step 433, then
                     # the true law's exponent 42.5 at the annulus, a tangent whose diagonal
-                    # spans 1e15, and 1067 steps at dt ~ 1e-14 mm/Pa (README, "Repairs")
+                    # spans 8e15, and 1067 steps at dt ~ 1e-14 mm/Pa (README, "Repairs")
                     ptc.stop_reason += (
                         f"; it had converged with the Fung laws' exponent capped at "
                         f"{MOTION_CAP:g} (step {cap_raised_at}), but with the true law the "
