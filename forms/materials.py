@@ -49,7 +49,14 @@ def _exp(Q, max_exponent):
     return ufl.conditional(ufl.lt(Q, Qc), inside, ufl.exp(Qc) * (1 + Q - Qc))
 
 
-def may_newman_yin(m: Membrane, c0, c1, c2, max_exponent=None) -> ufl.core.expr.Expr:
+def _fibre(x, tension_only: bool):
+    """The fibre strain ``x`` (``lambda - 1`` or ``I4 - 1``), or with ``tension_only`` its
+    positive part: fibres that buckle instead of bearing compression."""
+    return ufl.max_value(x, 0.0) if tension_only else x
+
+
+def may_newman_yin(m: Membrane, c0, c1, c2, max_exponent=None,
+                   tension_only: bool = False) -> ufl.core.expr.Expr:
     """May-Newman-Yin transversely isotropic exponential law.
 
     .. math::
@@ -58,30 +65,36 @@ def may_newman_yin(m: Membrane, c0, c1, c2, max_exponent=None) -> ufl.core.expr.
     with ``lambda`` the fibre stretch (``c0`` in Pa). With ``max_exponent`` the exponent is
     continued linearly beyond that value (see :func:`_exp`), so that a wild Newton iterate gives
     a huge but finite residual instead of an overflow; states that pass it are far outside the
-    law's range and are flagged by the solver.
+    law's range and are flagged by the solver. With ``tension_only`` the fibre term is
+    ``c2 max(lambda - 1, 0)^4`` (three times differentiable at ``lambda = 1``): the paper's law
+    resists compression along the fibres as steeply as stretch, which a ring that shrinks the
+    annulus turns into exponents of 40-150 (README, "Repairs").
     """
-    Q = c1 * (m.I1 - 3) ** 2 + c2 * (m.fibre_stretch - 1) ** 4
+    Q = c1 * (m.I1 - 3) ** 2 + c2 * _fibre(m.fibre_stretch - 1, tension_only) ** 4
     return c0 * (_exp(Q, max_exponent) - 1)
 
 
-def holzapfel(m: Membrane, c0, c1, c2, max_exponent=None) -> ufl.core.expr.Expr:
+def holzapfel(m: Membrane, c0, c1, c2, max_exponent=None,
+              tension_only: bool = False) -> ufl.core.expr.Expr:
     """Holzapfel-type exponential law (as used for mitral leaflets by Prot et al.).
 
     .. math::
         W = c_0\\left[\\exp\\left(c_1 (I_1 - 3)^2 + c_2 (\\lambda^2 - 1)^2\\right) - 1\\right]
 
-    ``max_exponent`` as for :func:`may_newman_yin`.
+    ``max_exponent`` as for :func:`may_newman_yin`; ``tension_only``: ``c2 max(I4 - 1, 0)^2``
+    (once differentiable at ``I4 = 1``), the usual switch of fibre-reinforced laws.
     """
-    Q = c1 * (m.I1 - 3) ** 2 + c2 * (m.I4 - 1) ** 2
+    Q = c1 * (m.I1 - 3) ** 2 + c2 * _fibre(m.I4 - 1, tension_only) ** 2
     return c0 * (_exp(Q, max_exponent) - 1)
 
 
-def exponent(law: str, m: Membrane, c0, c1, c2) -> ufl.core.expr.Expr:
+def exponent(law: str, m: Membrane, c0, c1, c2,
+             tension_only: bool = False) -> ufl.core.expr.Expr:
     """The exponent Q of an exponential law (to check a state against the cap)."""
     if law == "mny":
-        return c1 * (m.I1 - 3) ** 2 + c2 * (m.fibre_stretch - 1) ** 4
+        return c1 * (m.I1 - 3) ** 2 + c2 * _fibre(m.fibre_stretch - 1, tension_only) ** 4
     if law == "holzapfel":
-        return c1 * (m.I1 - 3) ** 2 + c2 * (m.I4 - 1) ** 2
+        return c1 * (m.I1 - 3) ** 2 + c2 * _fibre(m.I4 - 1, tension_only) ** 2
     raise ValueError(f"{law!r} has no exponent")
 
 

@@ -74,9 +74,11 @@ class PatchStress:
         law: a key of :data:`mvfem.forms.LAWS`.
         frame: orthonormal 3x3 matrix (columns t1, t2, n); identity by default (xy-plane).
         fibre_angle: angle of the fibre from t1 towards t2, radians.
+        tension_only: the fibre term bears tension only (``region.fibre_compression = false``).
     """
 
-    def __init__(self, law: str, frame: np.ndarray | None = None, fibre_angle: float = 0.0):
+    def __init__(self, law: str, frame: np.ndarray | None = None, fibre_angle: float = 0.0,
+                 tension_only: bool = False):
         import ufl
         from dolfinx import fem, mesh
         from mpi4py import MPI
@@ -102,7 +104,8 @@ class PatchStress:
         self.constants = {k: fem.Constant(self.mesh, 0.0) for k in law_parameters(law)}
         a0 = fem.Constant(self.mesh, self.a0)
         m = membrane(self.u, a0)
-        W = LAWS[law](m, *self.constants.values())
+        extra = {"tension_only": True} if tension_only else {}
+        W = LAWS[law](m, *self.constants.values(), **extra)
         sigma = cauchy_stress(W, m)
         # one point per cell: the stress is homogeneous on a P1 triangle
         self._expr = fem.Expression(sigma, np.array([[1 / 3, 1 / 3]]))

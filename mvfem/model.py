@@ -45,6 +45,8 @@ class Region:
     thickness: fem.Constant
     W: ufl.core.expr.Expr
     dx: ufl.Measure
+    #: the fibre term bears tension only (scene ``region.fibre_compression = false``)
+    tension_only: bool = False
 
 
 @dataclass
@@ -355,10 +357,12 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
               if tag is not None else ufl.Measure("dx", domain=msh, metadata=meta))
         consts = {k: fem.Constant(msh, float(val)) for k, val in r["params"].items()}
         h0 = fem.Constant(msh, float(r["thickness"]))
-        extra = {"max_exponent": cap} if is_exponential(r["law"]) else {}
+        tension_only = not r.get("fibre_compression", True)
+        extra = {"max_exponent": cap, "tension_only": tension_only} \
+            if is_exponential(r["law"]) else {}
         W = LAWS[r["law"]](kin, *consts.values(), **extra)
         regions.append(Region(r["label"] or "membrane", tag, r["law"], r.get("set", "custom"),
-                              consts, h0, W, dx))
+                              consts, h0, W, dx, tension_only))
         energy = energy + h0 * W * dx
 
     E_b = scene["bending"]["modulus"]

@@ -333,7 +333,8 @@ def _max_exponent(model: Model) -> float:
     q = 0.0
     for r in model.regions:
         if is_exponential(r.law):
-            vals = cell_values(exponent(r.law, model.kin, *r.constants.values()), model.mesh)
+            vals = cell_values(exponent(r.law, model.kin, *r.constants.values(),
+                                        tension_only=r.tension_only), model.mesh)
             if r.tag is not None:
                 cells = model.surface.cell_tags.find(r.tag)
                 vals = vals[cells[cells < len(vals)]]
@@ -767,7 +768,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                         f"{MOTION_CAP:g} (step {cap_raised_at}), but with the true law the "
                         f"largest exponent is {_max_exponent(model):.1f}: the prescribed motion "
                         f"compresses or stretches cells far beyond the law's range (a ring "
-                        f"too small for this annulus?)")
+                        f"too small for this annulus? fibres that bear tension only: "
+                        f"region.fibre_compression = false)")
         final_ok, stop_reason, t_reached = info.converged, ptc.stop_reason, 1.0
     else:
         final_ok, stop_reason, t_reached, load_steps, newton_its = _load_steps(

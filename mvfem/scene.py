@@ -240,6 +240,8 @@ _REGION = {
     "params": (None, _MISSING),  # a set name or a table of law parameters
     "thickness": (_length, None),
     "leaflet": (_choice("anterior", "posterior"), None),
+    # false: the fibre term bears tension only (mny, holzapfel; forms.materials._fibre)
+    "fibre_compression": (_bool, True),
 }
 _VALVE_KEYS = ("ap_diameter", "commissural_diameter", "saddle_height", "anterior_height",
                "posterior_height", "papillary_depth", "free_edge_size", "chordae_spacing",
@@ -281,6 +283,9 @@ def _check_region(path: str, region: dict) -> dict:
     from mvfem.materials import get_set
 
     r = _check_table(path, region, _REGION)
+    if not r["fibre_compression"] and r["law"] not in ("mny", "holzapfel"):
+        raise _Bad(f"{path}.fibre_compression", f"law {r['law']!r} has no fibre term (only "
+                   "mny and holzapfel do)")
     params = r["params"]
     if isinstance(params, str):
         leaflet = r["leaflet"] or (r["label"] if r["label"] in ("anterior", "posterior")

@@ -122,3 +122,28 @@ def test_stress_free_reference(evaluators):
         ev = evaluators[law]
         ev.set_parameters(params)
         assert np.abs(ev.cauchy(np.eye(3))).max() < 1e-9
+
+
+@pytest.mark.parametrize("law", ["mny", "holzapfel"])
+def test_fibres_that_bear_tension_only(law):
+    """``region.fibre_compression = false``: where the fibre is stretched the stress is the
+    paper's law (the closed form above); where it is compressed, the closed form with c2 = 0
+    (no fibre term), while the paper's law there carries the fibre's compression."""
+    from mvfem.materials import get_set
+
+    p = dict(get_set("MNY-mean" if law == "mny" else "Holzapfel", "anterior").params)
+    patch = PatchStress(law, tension_only=True)
+    paper = PatchStress(law)
+    for q in (patch, paper):
+        q.set_parameters(p)
+    for e_par, e_perp in ((0.15, 0.05), (0.1, 0.2), (-0.2, 0.1), (-0.3, 0.3)):
+        l1, l2 = np.array([1 + e_par]), np.array([1 + e_perp])
+        want = closed_form(law, p if e_par >= 0 else {**p, "c2": 0.0}, l1, l2)
+        s = patch.cauchy(patch.deformation(e_par, e_perp))
+        assert s[0, 0] == pytest.approx(want[0][0], rel=1e-9)
+        assert s[1, 1] == pytest.approx(want[1][0], rel=1e-9)
+        full = paper.cauchy(paper.deformation(e_par, e_perp))[0, 0]
+        if e_par < 0:  # the paper's law: the compressed fibre adds (a negative) stress
+            assert full < s[0, 0] - 1e-6 * abs(s[0, 0])
+        else:
+            assert full == pytest.approx(s[0, 0], rel=1e-12)
