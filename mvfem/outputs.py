@@ -326,6 +326,7 @@ def write_outputs(result, problem, write: bool = True) -> None:
             strain, stress, area = per_region[region.label]
             regions[region.label] = {
                 "law": region.law, "set": region.set,
+                **({"fibre_compression": False} if region.tension_only else {}),
                 "area_mm2": float(area.sum()),
                 "radial_almansi_strain": _percentiles(strain),
                 "radial_cauchy_stress_Pa": _percentiles(stress),

@@ -474,6 +474,7 @@ def test_ring_too_small_closes_with_fibres_that_bear_tension_only():
           f" mm2, {s['wall_time_s']:.1f} s")
     assert s["converged"], s["stop_reason"]
     assert all(reg.tension_only for reg in r.model.regions)
+    assert all(reg["fibre_compression"] is False for reg in s["regions"].values())
     assert _max_exponent(r.model) < MOTION_CAP
     assert s["motion"]["completed_at_step"] is not None
     assert s["max_penetration_mm"] == 0.0
