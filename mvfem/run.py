@@ -64,8 +64,8 @@ NESTED_FIRST_WEIGHT = 16.0
 #: compresses the cells at the annulus to 0.62-0.64 along the fibres, exponents of 19 (3 mm
 #: mesh) to 31 (2 mm): with the true law every update that moved the leaflets far overshot
 #: there, and pseudo-time crept through the closure at dt ~ 5e-6 mm/Pa for 500-1100 steps
-#: (the 2 mm ring with neochordae stopped at 1500). Capped there the leaflets close at the
-#: pace of the demo: the 3 mm ring 265 + 19 steps instead of 825, the 2 mm ring with
+#: (the 2 mm ring with neochordae stopped at 1500). Capped there the leaflets close at about
+#: the pace of the unrepaired valve: the 3 mm ring 265 + 19 steps instead of 825, the 2 mm ring with
 #: neochordae 677 + 36 (caps of 5, 15 and 20: 455, 655 and 825 steps; README, "Repairs")
 MOTION_CAP = 10.0
 
@@ -622,16 +622,15 @@ class _RaiseCap:
     def __call__(self, rec: PseudoTimeRecord, ptc: PseudoTransient) -> None:
         self.inner(rec, ptc)
         if rec.accepted and float(self.model.exponent_cap.value) != MAX_EXPONENT \
-                and _relaxed(self.model):
+                and _relaxed(self.model, float(self.model.exponent_cap.value)):
             self.model.exponent_cap.value = MAX_EXPONENT
             self.info["cap_raised_at_step"] = rec.step
 
 
-def _relaxed(model: Model) -> bool:
-    """Whether every cell's Fung exponent is below 0.9 x the sequenced start's cap."""
-    from mvfem.sequence import START_CAP
-
-    return _max_exponent(model) < 0.9 * START_CAP
+def _relaxed(model: Model, cap: float) -> bool:
+    """Whether every cell's Fung exponent is below 0.9 x ``cap`` (the cap in force: the
+    sequenced start's, or a prescribed motion's), where the capped law is the true one."""
+    return _max_exponent(model) < 0.9 * cap
 
 
 def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COMM_WORLD,
@@ -735,16 +734,17 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
         info = ptc.run()
         load_steps, newton_its = ptc.accepted_steps, len(ptc.history)
         convexified, symmetric = ptc.convexified, ptc.symmetric_solves
-        if float(model.exponent_cap.value) != MAX_EXPONENT:
+        cap = float(model.exponent_cap.value)
+        if cap != MAX_EXPONENT:
             # the soft-capped problem's equilibrium: the true one only where no cell is
             # beyond the cap; else go on with the true cap from here
+            relaxed = _relaxed(model, cap)
             model.exponent_cap.value = MAX_EXPONENT
             if seq is not None:
                 seq["cap_raised_at_step"] = newton_its
             cap_raised_at = newton_its
-            relaxed = _relaxed(model)
             if hook is not None and comm.rank == 0 and progress and info.converged:
-                log.info(f"  converged with the Fung laws' exponent capped at {MOTION_CAP:g} "
+                log.info(f"  converged with the Fung laws' exponent capped at {cap:g} "
                          f"(step {newton_its}); " + ("no cell is near the cap" if relaxed else
                                                      "the true law goes on from there"))
             if info.converged and not relaxed:
@@ -765,7 +765,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                     # spans 8e15, and 1067 steps at dt ~ 1e-14 mm/Pa (README, "Repairs")
                     ptc.stop_reason += (
                         f"; it had converged with the Fung laws' exponent capped at "
-                        f"{MOTION_CAP:g} (step {cap_raised_at}), but with the true law the "
+                        f"{cap:g} (step {cap_raised_at}), but with the true law the "
                         f"largest exponent is {_max_exponent(model):.1f}: the prescribed motion "
                         f"compresses or stretches cells far beyond the law's range (a ring "
                         f"too small for this annulus? fibres that bear tension only: "

@@ -29,22 +29,13 @@ from pathlib import Path
 
 import mvfem
 from mvfem.errors import InputError
+from mvfem.scene import parse_set_option
 
 #: the numbers compared (summary.json ``valve`` keys) and their table headings
 KEYS = (("regurgitant_orifice_area_mm2", "orifice mm^2"),
         ("coaptation_length_mm", "coaptation mm"),
         ("coaptation_trace_length_mm", "trace mm"),
         ("tenting_height_mm", "tenting mm"))
-
-
-def _value(text: str):
-    """A ``--set`` value as TOML reads it (a bare word stays a string)."""
-    import tomllib
-
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text
 
 
 def closures(scene_path: str, repair: str | None = None, ramp_steps=(10, 20, 30, 40),
@@ -129,12 +120,7 @@ def main(argv=None) -> int:
         if not motions or bad:
             raise InputError(f"--motion: {a.motion!r}: each must be with-pressure or "
                              "before-pressure")
-        changes = {}
-        for kv in a.set:
-            if "=" not in kv:
-                raise InputError(f"--set: {kv!r} is not KEY=VALUE")
-            k, v = kv.split("=", 1)
-            changes[k.strip()] = _value(v.strip())
+        changes = dict(parse_set_option(kv) for kv in a.set)
         for f in (a.scene, a.repair):
             if f is not None and not Path(f).is_file():
                 raise InputError(f"{f}: no such file")
