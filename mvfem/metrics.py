@@ -126,7 +126,7 @@ def coapting_trace_length(x, cells_a, cells_b, origin, normal, within: float,
 
 def _length_within(segs, x, cells_b, within: float, step: float) -> float:
     """:func:`coapting_trace_length` of the trace's segments ``segs`` ((k, 2, 3))."""
-    from mvfem.distance import point_triangle_distance
+    from mvfem.distance import points_within
 
     if len(segs) == 0 or len(cells_b) == 0:
         return 0.0
@@ -136,7 +136,7 @@ def _length_within(segs, x, cells_b, within: float, step: float) -> float:
     first = np.repeat(np.cumsum(parts) - parts, parts)
     u = (np.arange(len(seg)) - first + 0.5) / parts[seg]
     p = segs[seg, 0] + u[:, None] * (segs[seg, 1] - segs[seg, 0])
-    near = point_triangle_distance(p, x, cells_b) <= within
+    near = points_within(p, x, cells_b, within)
     return float(np.sum((length / parts)[seg][near]))
 
 

@@ -17,6 +17,7 @@ from conftest import rotation, tilted_frame
 
 from mvfem.distance import (
     point_triangle_distance,
+    points_within,
     read_reference,
     surface_distance,
     surface_samples,
@@ -160,6 +161,30 @@ def test_candidates_match_brute_force():
                                                  x[tri[:, 1]], x[tri[:, 2]])[0].min() for q in p])
     for k in (1, 4, 8):
         assert np.allclose(point_triangle_distance(p, x, tri, k=k), brute, rtol=0, atol=1e-12)
+
+
+def test_points_within_match_brute_force():
+    """Whether a point is within a distance of a wavy sheet, as the minimum over all triangles
+    says: points scattered near and far, and points just above the nodes (far from every
+    centroid: a reach without the triangles' radius misses them), at reaches from below the
+    cells' size to above it."""
+    rng = np.random.default_rng(5)
+    x, tri = grid(20, 12)
+    x[:, 2] = np.sin(x[:, 0]) * np.cos(0.7 * x[:, 1])
+    p = np.vstack([np.column_stack([rng.uniform(-2, 12, 400), rng.uniform(-2, 8, 400),
+                                    rng.uniform(-2, 2, 400)]),
+                   x + [0.0, 0.0, 0.04]])
+    from mvfem.contact import closest_point_on_triangles
+
+    brute = np.array([closest_point_on_triangles(np.repeat(q[None], len(tri), 0), x[tri[:, 0]],
+                                                 x[tri[:, 1]], x[tri[:, 2]])[0].min() for q in p])
+    for within in (0.05, 0.3, 1.0, 3.0):
+        got = points_within(p, x, tri, within)
+        assert np.array_equal(got, brute <= within), within
+        assert 0 < got.sum() < len(p)
+    # small chunks give the same answer (the budget splits the points)
+    assert np.array_equal(points_within(p, x, tri, 0.3, budget=100), brute <= 0.3)
+    assert not points_within(np.zeros((0, 3)), x, tri, 1.0).size
 
 
 def test_rotation_and_scale():
