@@ -759,11 +759,27 @@ class Contact:
         """(depth, count) of the mesh edges that cross admissible triangles at ``x``:
         segment-triangle tests (Moller-Trumbore) on candidates from a KD-tree of centroids;
         the depth of a crossing is the distance of the edge's shallower end to the plane."""
+        a, b, tri, dp, dq = self._crossings(x)
+        if len(a) == 0:
+            return 0.0, 0
+        return float(np.minimum(np.abs(dp), np.abs(dq)).max()), int(len(a))
+
+    def crossing_nodes(self, x: np.ndarray) -> np.ndarray:
+        """Sorted indices of the nodes of every edge that crosses an admissible triangle at
+        ``x`` and of those triangles (:meth:`intersections`)."""
+        a, b, tri, _, _ = self._crossings(x)
+        return np.unique(np.concatenate([a, b, tri.ravel()]))
+
+    def _crossings(self, x: np.ndarray):
+        """The crossing edges' ends ``a``, ``b`` (m,), the triangles they cross (m, 3), and
+        the ends' signed distances to those triangles' planes (:meth:`intersections`)."""
         from scipy.spatial import cKDTree
 
         cells, e = self.view.cells, self._edges
+        none = (np.zeros(0, dtype=np.int64),) * 2 + (np.zeros((0, 3), dtype=np.int64),) + \
+            (np.zeros(0),) * 2
         if len(self.slaves) == 0 or len(cells) == 0:
-            return 0.0, 0
+            return none
         mid = 0.5 * (x[e[:, 0]] + x[e[:, 1]])
         half = 0.5 * np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
         r_tri = _tri_radius(x, cells)
@@ -779,7 +795,7 @@ class Contact:
         keep[keep] = self._admissible(a[keep], t[keep]) & self._admissible(b[keep], t[keep])
         a, b, tri = a[keep], b[keep], tri[keep]
         if len(a) == 0:
-            return 0.0, 0
+            return none
         p, q = x[a], x[b]
         v0, v1, v2 = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
         n = np.cross(v1 - v0, v2 - v0)
@@ -791,10 +807,7 @@ class Contact:
         hit = p + tt[:, None] * (q - p)
         _, _, inside = closest_point_on_triangles(hit, v0, v1, v2)
         found = cross & inside
-        if not found.any():
-            return 0.0, 0
-        depth = np.minimum(np.abs(dp[found]), np.abs(dq[found]))
-        return float(depth.max()), int(found.sum())
+        return a[found], b[found], tri[found], dp[found], dq[found]
 
     # --- energy -----------------------------------------------------------------------------
     def _near(self, x: np.ndarray, radius: float):

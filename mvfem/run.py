@@ -596,7 +596,10 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
     if not res.converged:
         info.update(used=False, reason="the coarse solve stopped short")
     else:
-        info.update(transfer(res.model, model))
+        from mvfem import sequence
+
+        info.update(transfer(res.model, model,
+                             sweeps=sequence.UNFOLD_SWEEPS if nested else 0))
     if comm.rank == 0:
         fine = f"{model.mesh.topology.index_map(2).size_global} cells" if nested \
             else f"the {size:g} mm mesh"
@@ -606,6 +609,9 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
             if progress:
                 scaled = (f" x {info['scale']:g} (as moved, {info['crossings']} edge(s) "
                           "crossed a triangle)") if info.get("scale", 1.0) != 1.0 else ""
+                if info.get("unfolded"):
+                    scaled = (f", smoothed where {info['crossings']} edge(s) crossed a "
+                              f"triangle ({info['unfolded']} sweep(s))")
                 log.info(line + "from its closed state" + scaled)
         else:
             log.warning(line + f"from the open state ({info['reason']})")
