@@ -29,7 +29,8 @@ across a fold shorten): not used.
 
 Nested levels (``mesh.refine``, session 17) use the same transfer and start: the fine mesh is
 the coarse one split 1-to-4, so the coarse nodes move exactly and each new node goes with the
-coarse triangle it came from. The transferred state has no crushed cells, yet its residual
+coarse triangle it came from; where that state crosses, it is smoothed where it crosses
+(:func:`unfold`, session 43) before it would be scaled back. The transferred state has no crushed cells, yet its residual
 is still several times the load (8x on the demo refined once; the same with the new nodes on
 the coarse flat triangles instead of the curved surface): the stress jumps between coarse
 triangles are unbalanced at the new nodes. The fine solve still needs 120-180 pseudo-time
@@ -158,13 +159,13 @@ def transfer(coarse, fine, scales=SCALES, sweeps: int = 0) -> dict:
     where it crosses (:func:`unfold`, at most ``sweeps`` sweeps within the contact's
     exclusion of the crossing: ``unfolded`` the sweeps it took; nested levels), else scaled
     by the first of ``scales`` whose state does not cross (``scale``; ``crossings`` the
-    moved state's count in either case). A coarse closure can pass through itself near a commissural
-    fold within the contact's exclusion (an edge through a triangle of the same leaflet with
-    an end within 1 mm of it in the reference surface: not a contact pair there, so neither
+    moved state's count in either case). A coarse closure can pass through itself at a fold
+    within the contact's exclusion (an edge through a triangle of the same leaflet with an
+    end within 1 mm of it in the reference surface: not a contact pair there, so neither
     pushed apart nor counted); split, the fine edges' ends are beyond it, and the fine level
-    sees the crossing. The demo at 15.5 kPa refined once: 2 edges, none at 0.8 x the state,
-    which closed in 98 steps to the state the open start reaches in 621 (README, "Nested
-    levels")."""
+    sees the crossing. The demo at 16.5 kPa refined once: 2 edges; scaled back to 0.8 the
+    middle level of the demo refined twice took 115 steps, smoothed in one sweep 85 (36-62
+    where nothing crosses; README, "Nested levels")."""
     comm = fine.comm
     cv, fv = coarse.view, fine.view
     if cv is None or fv is None:
