@@ -6,7 +6,8 @@
 Closes `mvfem demo`'s scene (mesh ``--size``, mm) refined ``--refine`` times, each level from
 the closure of the level below (``solver.nested``), at each pressure (kPa), one after the
 other in this process, and prints for every pseudo-time solve (a level; a level restarted
-from the open state is a second row): its dofs, steps, refused steps, growths of the matrix's
+from the open state is a second row): how it started (the closure below as moved, smoothed
+where it crossed, scaled back, or the open state), its dofs, steps, refused steps, growths of the matrix's
 pattern (each a new symbolic analysis), updates solved with the symmetric tangent,
 convexified re-solves, updates solved with the projected blocks at once (``ahead``:
 ``PseudoTransient.convex_window``), and its wall time with the linear solves, the assembly
@@ -120,15 +121,38 @@ def close(refine: int, size: float, pressure_kpa: float) -> dict:
             "coarse_start": s.get("coarse_start"), "levels": list(LEVELS)}
 
 
+def starts(rec: dict) -> list[str]:
+    """How each level started, coarsest first (summary.json ``coarse_start``, nested): "open",
+    "moved" (the closure below as moved), "smoothed (k)" (smoothed where it crossed, k
+    sweeps: ``sequence.unfold``), "x s" (scaled back toward the open state) or "open (...)"
+    where the moved state was refused; one per level only where each level is one solve."""
+    chain, cs = [], rec.get("coarse_start")
+    while cs:
+        chain.append(cs)
+        cs = cs.get("coarser")
+    out = ["open"]
+    for cs in reversed(chain):
+        if not cs.get("used"):
+            out.append("open (refused)")
+        elif cs.get("unfolded"):
+            out.append(f"smoothed ({cs['unfolded']})")
+        elif cs.get("scale", 1.0) != 1.0:
+            out.append(f"x {cs['scale']:g}")
+        else:
+            out.append("moved")
+    return out if len(out) == len(rec["levels"]) else [""] * len(rec["levels"])
+
+
 def table(rec: dict, history: bool) -> str:
     lines = [f"refine {rec['refine']}, {rec['size_mm']} mm, {rec['pressure_kPa']} kPa: "
              f"{rec['wall_s']:.1f} s, converged {rec['converged']}, coaptation "
              f"{rec['coaptation_mm']:.6f} mm", "",
-             "| dofs | steps | refused | growths | symmetric | convexified | ahead | wall (s) | "
-             "linear solves (s) | assembly (s) | point terms (s) | a step (s) |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for lv in rec["levels"]:
-        lines.append(f"| {lv['dofs']} | {lv['steps']} | {lv['refused']} | {lv['growths']} | "
+             "| start | dofs | steps | refused | growths | symmetric | convexified | ahead | "
+             "wall (s) | linear solves (s) | assembly (s) | point terms (s) | a step (s) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for lv, start in zip(rec["levels"], starts(rec)):
+        lines.append(f"| {start} | {lv['dofs']} | {lv['steps']} | {lv['refused']} | "
+                     f"{lv['growths']} | "
                      f"{lv['symmetric']} | {lv['convexified']} | {lv['ahead']} | "
                      f"{lv['wall_s']:.2f} | "
                      f"{lv['linear_s']:.2f} | {lv['assembly_s']:.2f} | "

@@ -212,9 +212,31 @@ def test_level_costs_script(tmp_path):
         assert 0 < lv["start_to_end_mm"] <= sum(d["largest_move_mm"] for d in hot) + 1e-9
         assert hot[-1]["median_force"] <= lv["history"][accepted[-1] - 1]["residual"]
     assert f"| {fine['steps']} | " in r.stdout and "start to end at most" in r.stdout
+    cs = rec["coarse_start"]
+    assert cs["used"] and cs["scale"] == 1.0 and "unfolded" not in cs
+    assert f"| open | {coarse['dofs']} | " in r.stdout
+    assert f"| moved | {fine['dofs']} | " in r.stdout
     again = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=600,
                       check=False)
     assert again.returncode == 2 and "exists" in again.stderr
+
+
+def test_level_costs_names_how_each_level_started():
+    """level_costs.starts reads summary ``coarse_start`` (the finest level's start, its
+    ``coarser`` the next level's) into one label per level, coarsest first, and leaves the
+    column blank where the solves are not one a level."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("level_costs",
+                                                  ROOT / "scripts" / "level_costs.py")
+    lc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(lc)
+    rec = {"levels": [{}] * 4, "coarse_start": {
+        "used": True, "scale": 0.8, "coarser": {
+            "used": True, "scale": 1.0, "unfolded": 1, "coarser": {"used": False}}}}
+    assert lc.starts(rec) == ["open", "open (refused)", "smoothed (1)", "x 0.8"]
+    assert lc.starts({"levels": [{}]}) == ["open"]
+    assert lc.starts({**rec, "levels": [{}] * 5}) == [""] * 5
 
 
 def test_symmetric_tangent_script(tmp_path):
