@@ -1016,7 +1016,21 @@ def test_nested_transfer_unfolds_a_crossing_in_place():
     assert change[near].max() > 0 and 0 < change.max() < 1.0
 
 
-def test_nested_levels_close_a_refined_valve(tmp_path):
+def _spy_transfer(monkeypatch) -> list:
+    """The ``sweeps`` each call of ``sequence.transfer`` gets (nested levels smooth a crossing
+    away, ``solver.coarse_start`` does not: README, "A crossing smoothed in place")."""
+    import mvfem.sequence as sequence
+
+    seen, real = [], sequence.transfer
+
+    def spy(coarse, fine, **kw):
+        seen.append(kw.get("sweeps", 0))
+        return real(coarse, fine, **kw)
+    monkeypatch.setattr(sequence, "transfer", spy)
+    return seen
+
+
+def test_nested_levels_close_a_refined_valve(tmp_path, monkeypatch):
     """``mesh.refine = 1`` (``solver.nested`` by default) on the 5 mm demo valve: the unrefined
     valve is closed first, its closed state carried onto the refined mesh (whose nodes include
     the coarse ones: the transfer moves them exactly, max_distance_mm is the new nodes' offset
@@ -1025,9 +1039,13 @@ def test_nested_levels_close_a_refined_valve(tmp_path):
     summary.json says so, one level."""
     from mvfem.scene import load_scene
 
+    from mvfem.sequence import UNFOLD_SWEEPS
+
+    seen = _spy_transfer(monkeypatch)
     scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
     r = solve(scene.with_changes({"mesh.size": 5.0, "mesh.refine": 1}), out=tmp_path / "out",
               progress=False)
+    assert seen == [UNFOLD_SWEEPS]
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
     seq = s["coarse_start"]
     assert r.converged and s["max_penetration_mm"] == 0.0
@@ -1153,7 +1171,7 @@ def test_refine_refused(changes, what):
         scene.with_changes(changes)
 
 
-def test_coarse_start_levels_chain(tmp_path):
+def test_coarse_start_levels_chain(tmp_path, monkeypatch):
     """``solver.coarse_start = [5, 4]`` on the 3 mm demo: the 4 mm closure starts from the 5 mm
     one and the 3 mm from the 4 mm; summary.json nests the levels, each with its own mesh, and
     the 3 mm closure converges without penetration. (Coarser pairs, 8 -> 6 -> 4 mm, refuse
@@ -1162,9 +1180,11 @@ def test_coarse_start_levels_chain(tmp_path):
 
     from mvfem.scene import load_scene
 
+    seen = _spy_transfer(monkeypatch)
     scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
     r = solve(scene.with_changes({"mesh.size": 3.0, "solver.coarse_start": [4.0, 5.0]}),
               out=tmp_path / "out", progress=False)
+    assert seen == [0, 0]
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
     seq = s["coarse_start"]
     assert r.converged and s["max_penetration_mm"] == 0.0
