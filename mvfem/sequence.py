@@ -127,6 +127,8 @@ def unfold(X: np.ndarray, cells: np.ndarray, free: np.ndarray, U: np.ndarray,
     import scipy.sparse as sp
     from scipy.spatial import cKDTree
 
+    if len(near) == 0:  # nothing to smooth where nothing is said to cross
+        return None, 0
     d, _ = cKDTree(X[near]).query(X)
     t = np.clip(1.0 - d / radius, 0.0, 1.0)
     w = t * t * (3.0 - 2.0 * t)

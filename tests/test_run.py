@@ -973,6 +973,7 @@ def test_unfold_smooths_the_nodes_near_a_crossing_and_no_others():
     beyond = (d >= r) | ~free.all(axis=1)
     assert np.array_equal(out[beyond], U[beyond])
     assert unfold(X, cells, free, U, np.array([i]), r, lambda V: 1, sweeps=3) == (None, 3)
+    assert unfold(X, cells, free, U, np.zeros(0, dtype=int), r, lambda V: 1) == (None, 0)
 
 
 def test_nested_transfer_unfolds_a_crossing_in_place():
