@@ -544,7 +544,7 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
     import copy
 
     from mvfem.scene import _make
-    from mvfem.sequence import transfer
+    from mvfem.sequence import UNFOLD_SWEEPS, transfer
 
     m = scene["mesh"]
     size = m.get("size") or default_size(m)
@@ -596,10 +596,7 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
     if not res.converged:
         info.update(used=False, reason="the coarse solve stopped short")
     else:
-        from mvfem import sequence
-
-        info.update(transfer(res.model, model,
-                             sweeps=sequence.UNFOLD_SWEEPS if nested else 0))
+        info.update(transfer(res.model, model, sweeps=UNFOLD_SWEEPS if nested else 0))
     if comm.rank == 0:
         fine = f"{model.mesh.topology.index_map(2).size_global} cells" if nested \
             else f"the {size:g} mm mesh"
@@ -607,12 +604,14 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
                 f"on {fine} ")
         if info["used"]:
             if progress:
-                scaled = (f" x {info['scale']:g} (as moved, {info['crossings']} edge(s) "
-                          "crossed a triangle)") if info.get("scale", 1.0) != 1.0 else ""
+                how = ""
                 if info.get("unfolded"):
-                    scaled = (f", smoothed where {info['crossings']} edge(s) crossed a "
-                              f"triangle ({info['unfolded']} sweep(s))")
-                log.info(line + "from its closed state" + scaled)
+                    how = (f", smoothed where {info['crossings']} edge(s) crossed a triangle "
+                           f"({info['unfolded']} sweep(s))")
+                elif info.get("scale", 1.0) != 1.0:
+                    how = (f" x {info['scale']:g} (as moved, {info['crossings']} edge(s) "
+                           "crossed a triangle)")
+                log.info(line + "from its closed state" + how)
         else:
             log.warning(line + f"from the open state ({info['reason']})")
     return info

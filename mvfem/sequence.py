@@ -127,17 +127,18 @@ def unfold(X: np.ndarray, cells: np.ndarray, free: np.ndarray, U: np.ndarray,
     import scipy.sparse as sp
     from scipy.spatial import cKDTree
 
+    from mvfem.meshes.refine import cell_edges
+
     if len(near) == 0:  # nothing to smooth where nothing is said to cross
         return None, 0
     d, _ = cKDTree(X[near]).query(X)
     t = np.clip(1.0 - d / radius, 0.0, 1.0)
     w = t * t * (3.0 - 2.0 * t)
     move = (w > 0) & free.all(axis=1)
-    e = np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]])
+    e, _ = cell_edges(cells)  # each edge once, whatever the triangles sharing it
     n = len(X)
     A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
                       shape=(n, n)).tocsr()
-    A.data[:] = 1.0  # (each edge once, whatever the triangles sharing it)
     deg = np.asarray(A.sum(axis=1)).ravel()
     x = X + U
     wm = w[move, None]

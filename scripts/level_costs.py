@@ -7,8 +7,8 @@ Closes `mvfem demo`'s scene (mesh ``--size``, mm) refined ``--refine`` times, ea
 the closure of the level below (``solver.nested``), at each pressure (kPa), one after the
 other in this process, and prints for every pseudo-time solve (a level; a level restarted
 from the open state is a second row): how it started (the closure below as moved, smoothed
-where it crossed, scaled back, or the open state), its dofs, steps, refused steps, growths of the matrix's
-pattern (each a new symbolic analysis), updates solved with the symmetric tangent,
+where it crossed, scaled back, or the open state), its dofs, steps, refused steps, growths of
+the matrix's pattern (each a new symbolic analysis), updates solved with the symmetric tangent,
 convexified re-solves, updates solved with the projected blocks at once (``ahead``:
 ``PseudoTransient.convex_window``), and its wall time with the linear solves, the assembly
 (residuals, tangents, energies, the load's work) and the point terms (contact, chordae,
