@@ -15,8 +15,8 @@ one fold: README "Repairs", "Which closure: the path picks among equilibria" (se
 whose table this script makes. Differences between repairs smaller than the spread are not
 differences.
 
-Bad input (a missing scene or repair file, a bad key, a list that is not numbers) is one
-line and exit code 2.
+Bad input (a missing scene or repair file, a bad key, a list that is not numbers, an
+``--out`` that exists) is one line and exit code 2, before any run.
 """
 
 from __future__ import annotations
@@ -124,6 +124,8 @@ def main(argv=None) -> int:
         for f in (a.scene, a.repair):
             if f is not None and not Path(f).is_file():
                 raise InputError(f"{f}: no such file")
+        if a.out and Path(a.out).exists():  # nothing a user wrote is overwritten
+            raise InputError(f"--out {a.out}: exists; choose another name")
         runs = closures(a.scene, a.repair, steps, motions, changes)
     except InputError as e:
         print(f"path_spread: {e}", file=sys.stderr)

@@ -283,7 +283,7 @@ def test_path_spread_script(tmp_path):
     """scripts/path_spread.py closes one repaired scene along two paths (ramp_steps 10 and
     20, the 5 mm pathological valve with the 36 mm ring, about 9 s) and prints a row a run and
     their spread, which is the largest minus the smallest of the runs it wrote; bad input is
-    one line and exit code 2."""
+    one line and exit code 2, an existing ``--out`` among it (left as it was)."""
     out = tmp_path / "spread.json"
     scene = ROOT / "scripts" / "scenes" / "valve_pathological.toml"
     cmd = [sys.executable, str(ROOT / "scripts" / "path_spread.py"), str(scene), "--repair",
@@ -305,3 +305,8 @@ def test_path_spread_script(tmp_path):
     assert bad.returncode == 2
     assert bad.stderr.strip().splitlines() == [
         "path_spread: --motion: 'sideways': each must be with-pressure or before-pressure"]
+    written = out.read_text()
+    again = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=120)
+    assert again.returncode == 2 and out.read_text() == written
+    assert again.stderr.strip().splitlines() == [f"path_spread: --out {out}: exists; choose "
+                                                 "another name"]
