@@ -457,11 +457,12 @@ def test_ring_too_small_says_why_it_stops():
 
 
 @pytest.mark.slow
-def test_ring_too_small_closes_with_fibres_that_bear_tension_only():
+def test_ring_too_small_closes_with_fibres_that_bear_tension_only(unrepaired):
     """The same 32 mm ring with ``region.fibre_compression = false`` on both leaflets: the
     fibres at the annulus, compressed to about 0.57, add nothing, the largest exponent stays
     below the cap's 10 (the I1 term alone), and the closure converges with its motion
-    complete, no crossing, and the orifice below a fifth of the unrepaired 62 mm^2."""
+    complete, no crossing, and the orifice below a fifth of the unrepaired valve's (62 mm^2
+    measured), closed in the same module."""
     from mvfem.run import MOTION_CAP, _max_exponent
 
     scene = mvfem.load_scene(PATHOLOGICAL).with_changes(
@@ -478,7 +479,8 @@ def test_ring_too_small_closes_with_fibres_that_bear_tension_only():
     assert _max_exponent(r.model) < MOTION_CAP
     assert s["motion"]["completed_at_step"] is not None
     assert s["max_penetration_mm"] == 0.0
-    assert s["valve"]["regurgitant_orifice_area_mm2"] < 0.2 * 62.4
+    assert s["valve"]["regurgitant_orifice_area_mm2"] < \
+        0.2 * unrepaired["valve"]["regurgitant_orifice_area_mm2"]
 
 
 @pytest.mark.slow
