@@ -12,10 +12,11 @@ being timed did not compute at that setting:
   (:func:`mvfem.reference.axisymmetric_inflation`);
 - ``valve``: the built-in valve of ``mvfem demo`` closed at 16 kPa, against a much finer run
   of itself, solved first: the demo valve refined twice (nested levels, ``mesh.refine = 2``,
-  18,304 triangles, about 0.5 mm; ``--quick``: the 5 mm valve refined once): closed shape (area-weighted mean distance, 95th percentile
-  and Hausdorff distance of the predicted closed leaflets to the finest closed leaflets, leaflet
-  with leaflet, divided by the finest run's largest displacement to make them relative),
-  coaptation length, and the 50th and 95th percentiles of each leaflet's radial Cauchy stress.
+  18,304 triangles, about 0.5 mm; ``--quick``: the 5 mm valve refined once): closed shape
+  (area-weighted mean distance, 95th percentile and Hausdorff distance of the predicted closed
+  leaflets to the finest closed leaflets, leaflet with leaflet, divided by the finest run's
+  largest displacement to make them relative), coaptation length (stepped and the trace
+  length), and the 50th and 95th percentiles of each leaflet's radial Cauchy stress.
 
 The sweep varies the mesh size, the element degree (P1, P2: disks only; chordae and contact
 need P1), the quadrature degree (P2 only: a P1 membrane on flat facets has a constant integrand
