@@ -540,7 +540,8 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
     """Close ``scene`` on its next coarser level and move its closed state onto ``model``
     (mvfem/sequence.py): the mesh refined once less (``mesh.refine``, nested levels), else the
     mesh of ``solver.coarse_start``. What happened, for summary.json ``coarse_start``. The
-    coarser levels get their method's default ``max_steps``, whatever the scene sets."""
+    coarser levels get their method's default ``max_steps`` and ``tolerance``, whatever the
+    scene sets."""
     import copy
 
     from mvfem.scene import _make
@@ -581,8 +582,12 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
         head = {"size_mm": hc}
     # a coarser level is a start, not the problem the scene poses: its method's own budget,
     # not the scene's solver.max_steps, which bounds the finest level (the 1 mm hard cases cap
-    # it at 300, and the 2 mm demo level below takes 222-304 steps as roundoff moves its path)
+    # it at 300, and the 2 mm demo level below takes 222-304 steps as roundoff moves its path);
+    # and the default tolerance, not the scene's: a start closed less tightly costs the next
+    # level what it saved (README, "Tried in session 35 and dropped"), so a looser
+    # solver.tolerance stops the scene's own level earlier on the same path
     raw.get("solver", {}).pop("max_steps", None)
+    raw.get("solver", {}).pop("tolerance", None)
     coarse_scene = _make(raw, scene.source, scene.base_dir)
     t0 = time.perf_counter()
     if comm.rank == 0 and progress:

@@ -1132,19 +1132,23 @@ def test_only_nested_levels_keep_projecting_after_a_climb(monkeypatch, changes, 
 
 
 @pytest.mark.parametrize("changes", [{"mesh.refine": 1}, {"solver.coarse_start": 8.0}])
-def test_coarser_levels_get_their_own_step_budget(monkeypatch, changes):
-    """``solver.max_steps`` bounds the scene's own (finest) level: a coarser level of a nested
-    or sequenced start gets its method's default budget. (With the scene's 300 the 2 mm demo
-    level, 304 steps on one path, stopped short, and the 1 mm hard cases restarted from the
-    open state.) The coarse solve is stubbed: only the scene it is given is looked at."""
+def test_coarser_levels_get_their_own_step_budget_and_tolerance(monkeypatch, changes):
+    """``solver.max_steps`` and ``solver.tolerance`` are the scene's own (finest) level's: a
+    coarser level of a nested or sequenced start gets its method's default budget and the
+    default tolerance. (With the scene's 300 the 2 mm demo level, 304 steps on one path,
+    stopped short, and the 1 mm hard cases restarted from the open state; a coarser level
+    stopped at a looser tolerance hands the next one a start that costs it what was saved.)
+    The coarse solve is stubbed: only the scene it is given is looked at."""
     from types import SimpleNamespace
 
     import mvfem.run as run
     from mvfem.model import build_model
     from mvfem.scene import load_scene
 
-    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
-    scene = scene.with_changes({"mesh.size": 5.0, "solver.max_steps": 300, **changes})
+    demo = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    default_tolerance = demo["solver"]["tolerance"]
+    scene = demo.with_changes({"mesh.size": 5.0, "solver.max_steps": 300,
+                               "solver.tolerance": 1e-4, **changes})
     seen = []
 
     def coarse_solve(sc, **kw):
@@ -1155,6 +1159,8 @@ def test_coarser_levels_get_their_own_step_budget(monkeypatch, changes):
     info = run._coarse_start(scene, build_model(scene), MPI.COMM_WORLD, progress=False)
     assert len(seen) == 1 and not info["used"]
     assert scene["solver"]["max_steps"] == 300 and seen[0]["solver"]["max_steps"] is None
+    assert scene["solver"]["tolerance"] == 1e-4 != default_tolerance
+    assert seen[0]["solver"]["tolerance"] == default_tolerance
     assert seen[0]["solver"]["nested"] == scene["solver"]["nested"]
 
 

@@ -221,6 +221,33 @@ def test_level_costs_script(tmp_path):
     assert again.returncode == 2 and "exists" in again.stderr
 
 
+def test_tolerance_error_script(tmp_path):
+    """scripts/tolerance_error.py on the 5 mm demo refined once at 16 kPa: the run at the
+    looser tolerance takes the default run's path through the coarser level to the step (the
+    coarser levels keep the default tolerance) and no more finest steps; both end within 10 x
+    their tolerance of the load (the run's own convergence rule); the looser closure is within 0.02 mm of the default one (the 5 mm mesh's own
+    error against its refinement is 0.3 mm) and its reported distances are the nodes' (rms at
+    most the largest). An existing ``--out`` is refused (exit 2)."""
+    out = tmp_path / "tol.json"
+    cmd = [sys.executable, str(ROOT / "scripts" / "tolerance_error.py"), "--size", "5",
+           "--refine", "1", "--pressures", "16", "--tolerances", "1e-4", "--out", str(out)]
+    r = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=600, check=False)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    ref, loose = json.loads(out.read_text())
+    assert ref["tolerance"] == 1e-8 and loose["tolerance"] == 1e-4
+    assert ref["converged"] and loose["converged"]
+    assert ref["equilibrium_residual"] <= 10 * 1e-8
+    assert loose["equilibrium_residual"] <= 10 * 1e-4
+    assert len(ref["steps"]) == len(loose["steps"]) == 2
+    assert loose["steps"][0] == ref["steps"][0] and loose["steps"][1] <= ref["steps"][1]
+    assert 0 <= loose["rms_mm"] <= loose["max_mm"] < 0.02
+    assert "max_mm" not in ref
+    assert f"| 16 | 0.0001 | {loose['steps'][0]} + {loose['steps'][1]} |" in r.stdout
+    again = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=600,
+                      check=False)
+    assert again.returncode == 2 and "exists" in again.stderr and "Traceback" not in again.stderr
+
+
 def test_level_costs_names_how_each_level_started():
     """level_costs.starts reads summary ``coarse_start`` (the finest level's start, its
     ``coarser`` the next level's) into one label per level, coarsest first, and leaves the
