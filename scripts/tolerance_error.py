@@ -15,8 +15,8 @@ distance of the nodes (mm) and the change of the coaptation trace length (mm). `
 writes the rows as JSON (an existing file is refused).
 
 What the distances are worth: the closure of the demo refined once is 0.026 mm from the demo
-refined twice on average (README, "Speed against error"), so a tolerance whose distance is
-far below the mesh's own error is a speed setting (README, "Speed against error").
+refined twice on average (`make bench`), so a tolerance whose distance is far below the
+mesh's own error is a speed setting (README, "The scene's tolerance is its own level's").
 """
 
 from __future__ import annotations
