@@ -225,9 +225,10 @@ def test_tolerance_error_script(tmp_path):
     """scripts/tolerance_error.py on the 5 mm demo refined once at 16 kPa: the run at the
     looser tolerance takes the default run's path through the coarser level to the step (the
     coarser levels keep the default tolerance) and no more finest steps; both end within 10 x
-    their tolerance of the load (the run's own convergence rule); the looser closure is within 0.02 mm of the default one (the 5 mm mesh's own
-    error against its refinement is 0.3 mm) and its reported distances are the nodes' (rms at
-    most the largest). An existing ``--out`` is refused (exit 2)."""
+    their tolerance of the load (the run's own convergence rule); the looser closure is within
+    0.02 mm of the default one (the 5 mm mesh's own error against its refinement is 0.3 mm)
+    and its reported distances are the nodes' (rms at most the largest). An existing
+    ``--out`` is refused (exit 2)."""
     out = tmp_path / "tol.json"
     cmd = [sys.executable, str(ROOT / "scripts" / "tolerance_error.py"), "--size", "5",
            "--refine", "1", "--pressures", "16", "--tolerances", "1e-4", "--out", str(out)]
