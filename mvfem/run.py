@@ -26,7 +26,7 @@ from mvfem.scene import Scene, load_scene
 from mvfem.solver import (LoadStepper, PseudoTimeRecord, PseudoTransient, SNESProblem, SolveInfo,
                           StepRecord)
 
-__all__ = ["solve", "Result", "check_converged"]
+__all__ = ["solve", "Result", "check_converged", "coarse_levels"]
 
 log = logging.getLogger(__name__)
 _ids = itertools.count()
@@ -635,6 +635,16 @@ class _RaiseCap:
                 and _relaxed(self.model, float(self.model.exponent_cap.value)):
             self.model.exponent_cap.value = MAX_EXPONENT
             self.info["cap_raised_at_step"] = rec.step
+
+
+def coarse_levels(summary: dict) -> list[dict]:
+    """summary.json ``coarse_start`` as a list of the coarser levels' records, the next coarser
+    first (each record's ``coarser`` is the one after it); empty without a coarser start."""
+    levels, cs = [], summary.get("coarse_start")
+    while cs:
+        levels.append(cs)
+        cs = cs.get("coarser")
+    return levels
 
 
 def _relaxed(model: Model, cap: float) -> bool:

@@ -126,12 +126,8 @@ def starts(rec: dict) -> list[str]:
     "moved" (the closure below as moved), "smoothed (k)" (smoothed where it crossed, k
     sweeps: ``sequence.unfold``), "x s" (scaled back toward the open state) or "open (...)"
     where the moved state was refused; one per level only where each level is one solve."""
-    chain, cs = [], rec.get("coarse_start")
-    while cs:
-        chain.append(cs)
-        cs = cs.get("coarser")
     out = ["open"]
-    for cs in reversed(chain):
+    for cs in reversed(run_mod.coarse_levels(rec)):
         if not cs.get("used"):
             out.append("open (refused)")
         elif cs.get("unfolded"):

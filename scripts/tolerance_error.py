@@ -38,11 +38,10 @@ DEMO = Path(mvfem.__file__).parent / "data" / "demo.toml"
 
 def level_steps(summary: dict) -> list[int]:
     """The Newton steps of each level of a run, coarsest first (summary ``coarse_start``)."""
-    steps, cs = [summary["newton_iterations"]], summary.get("coarse_start")
-    while cs:
-        steps.append(cs["steps"])
-        cs = cs.get("coarser")
-    return steps[::-1]
+    from mvfem.run import coarse_levels
+
+    return [cs["steps"] for cs in reversed(coarse_levels(summary))] + \
+        [summary["newton_iterations"]]
 
 
 def close(size: float, refine: int, pressure_kpa: float, tolerance: float | None):

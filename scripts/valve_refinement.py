@@ -45,13 +45,11 @@ def closed_surface(result, path: Path) -> None:
     model.comm.Barrier()
 
 
-def _steps(seq: dict) -> str:
+def _steps(summary: dict) -> str:
     """The coarser levels' pseudo-time steps of a nested solve, coarsest first ("-" if none)."""
-    steps = []
-    while seq:
-        steps.append(str(seq["steps"]))
-        seq = seq.get("coarser")
-    return "+".join(reversed(steps)) or "-"
+    from mvfem.run import coarse_levels
+
+    return "+".join(str(cs["steps"]) for cs in reversed(coarse_levels(summary))) or "-"
 
 
 def main(argv=None) -> int:
@@ -94,10 +92,9 @@ def main(argv=None) -> int:
         s, v = r.summary, r.summary.get("valve") or {}
         ref = s.get("reference") or {}
         t = s["timing"]
-        seq = s.get("coarse_start") or {}
         head = ({"size_mm": level} if args.refine is None else
                 {"refine": level, "start": "open" if name.endswith("open") or not level
-                 else "nested", "coarser_steps": _steps(seq)})
+                 else "nested", "coarser_steps": _steps(s)})
         rows.append({**head, "cells": s["cells"], "dofs": s["dofs"],
                      "converged": s["converged"], "wall_time_s": round(s["wall_time_s"], 1),
                      "newton_iterations": s["newton_iterations"],
