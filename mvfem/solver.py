@@ -216,6 +216,23 @@ class SNESProblem:
         self.A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
         self.regrowths += 1
 
+    def reset_pattern(self) -> None:
+        """Make the matrix anew with the pattern it had when constructed (the forms' and
+        ``sparsity``'s; collective): the room for the point terms' couplings is made again as
+        they come, and the solvers analyse the new matrix. A pseudo-time solve started again
+        from the same state then takes the same path, bit for bit; started on the room an
+        earlier solve grew, it does not (MUMPS orders the larger pattern otherwise, and
+        roundoff moves these paths: ``scripts/level_variants.py``)."""
+        self.A.destroy()
+        self.A = self.forms_matrix()
+        if self.point_terms is not None:
+            self.A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+            self._room = self._gather_pattern()
+        self.snes.setJacobian(self._jacobian, self.A)
+        for ksp in (self.snes.getKSP(), self._ksp_sym):
+            if ksp is not None:
+                ksp.reset()   # (its factorisation freed; type and options kept)
+
     def _union(self, parts: list) -> list | None:
         """Rank 0: the union of the pattern and the CSR ``parts``, kept as the new pattern,
         split into each rank's rows (local indptr, global columns); None when it is no larger

@@ -249,6 +249,46 @@ def test_tolerance_error_script(tmp_path):
     assert again.returncode == 2 and "exists" in again.stderr and "Traceback" not in again.stderr
 
 
+def test_level_variants_script(tmp_path):
+    """scripts/level_variants.py on the 5 mm demo refined once at 16 kPa: the first variant,
+    the control as it is, takes the finest steps of the plain run of that scene (its own
+    ``newton_iterations``: the same start and path); a variant capped at 5 steps stops there,
+    not converged (the fields reach the variant); after it, the first variant repeated takes
+    its steps again to its closure, node for node (the state and the matrix made anew: on the
+    room the first run grew, the repeat took 75 steps against 72; without the state set back
+    the capped variant started at the first one's closure and took none). A field
+    PseudoTransient lacks, and an existing ``--out``, exit 2 with one line."""
+    from mvfem.run import solve
+
+    plain = solve(mvfem_demo_scene(size=5, refine=1), progress=False, write=False)
+    out = tmp_path / "variants.json"
+    cmd = [sys.executable, str(ROOT / "scripts" / "level_variants.py"), "--size", "5",
+           "--refine", "1", "--pressures", "16", "--out", str(out),
+           "base:", "short:max_steps=5", "again:"]
+    r = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=600, check=False)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    base, short, again = json.loads(out.read_text())
+    assert base["converged"] and base["steps"] == plain.summary["newton_iterations"]
+    assert short["steps"] == 5 and not short["converged"] and short["options"] == \
+        {"max_steps": 5}
+    assert again["converged"] and again["steps"] == base["steps"]
+    assert again["refused"] == base["refused"] and again["distance_mm"] == 0.0
+    assert short["distance_mm"] > 0.0
+    assert f"| 16 | again | {base['steps']} | " in r.stdout
+    for bad, what in ((cmd, "exists"), (cmd[:2] + ["x:foo=1"], "no field 'foo'")):
+        e = run_child(bad, capture_output=True, text=True, env=_env(), timeout=600,
+                      check=False)
+        assert e.returncode == 2 and what in e.stderr and "Traceback" not in e.stderr
+
+
+def mvfem_demo_scene(size: float, refine: int):
+    """`mvfem demo`'s scene at mesh ``size`` (mm), refined ``refine`` times."""
+    import mvfem
+
+    return mvfem.load_scene(Path(mvfem.__file__).parent / "data" / "demo.toml").with_changes(
+        {"mesh.size": size, "mesh.refine": refine})
+
+
 def test_level_costs_names_how_each_level_started():
     """level_costs.starts reads summary ``coarse_start`` (the finest level's start, its
     ``coarser`` the next level's) into one label per level, coarsest first, and leaves the

@@ -1,0 +1,238 @@
+"""Variants of the pseudo-time control on the finest level of a nested closure, each from the
+same transferred start.
+
+    python scripts/level_variants.py --refine 2 --pressures 16,16.5 base: \\
+        mg2:min_growth=2 kf64:k_first_x=64 [--size 2] [--out variants.json]
+
+Closes `mvfem demo`'s scene (mesh ``--size``, mm) refined ``--refine`` times (nested levels)
+at each pressure (kPa). The coarser levels are closed once; the finest level is then solved
+once per variant, every time from the same transferred state, with the Fung laws' exponent
+cap as it started and the matrix made anew (``SNESProblem.reset_pattern``): the first variant
+repeated takes its path again bit for bit. A variant is ``NAME:FIELD=VALUE,...`` with fields
+of :class:`mvfem.solver.PseudoTransient` (``min_growth``, ``max_growth``, ``reject``,
+``shrink``, ``backtracks``, ``convex_window``, ...) set for the finest level only, and
+``k_first_x``: the first weight as a multiple of the level's start weight ``k0`` (the runs
+use 16, ``mvfem.run.NESTED_FIRST_WEIGHT``); ``NAME:`` alone is the control as it is. The
+run goes on from the last variant's closure. Prints, per pressure, a row per variant: its
+steps, refused steps, convergence, wall time and linear solves, and the largest nodal distance
+of its closure from the first variant's; then each variant's totals. ``--out`` writes the rows
+as JSON (an existing file is refused).
+
+Why: these paths move by tens of percent with roundoff and with any change of the control
+(README, "Solving"), so a control is judged on many pressures, and the coarser levels, the
+same for every variant, are closed once. The finest level alone of the demo refined twice
+takes 13-30 s a variant. Session 45's knobs, measured with it, are in "Tried in session 45
+and dropped" ("Nested levels").
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+
+import mvfem
+import mvfem.run as run_mod
+from mvfem.errors import InputError
+from mvfem.solver import PseudoTransient
+
+DEMO = Path(mvfem.__file__).parent / "data" / "demo.toml"
+
+#: what a variant may not set: the problem, the hooks and what a run reports
+FIXED = {"problem", "on_step", "ramp", "history", "stop_reason", "solve_s", "convexified",
+         "convexified_ahead", "symmetric_solves", "floor", "at_floor"}
+#: the fields a variant may set, with their defaults (their types read the values)
+FIELDS = {f.name: f.default for f in dataclasses.fields(PseudoTransient)
+          if f.name not in FIXED}
+
+
+def parse_variant(spec: str) -> tuple[str, dict]:
+    """``NAME:FIELD=VALUE,...`` -> (name, {field: value}); ValueError with the reason."""
+    name, _, rest = spec.partition(":")
+    if not name:
+        raise ValueError(f"{spec!r}: no name before ':'")
+    opts = {}
+    for item in filter(None, rest.split(",")):
+        field, eq, value = item.partition("=")
+        if not eq:
+            raise ValueError(f"{spec!r}: {item!r} is not FIELD=VALUE")
+        if field == "k_first_x":
+            kind = float
+        elif field not in FIELDS:
+            raise ValueError(f"{spec!r}: PseudoTransient has no field {field!r} a variant may "
+                             f"set (one of {', '.join(sorted(FIELDS))}, k_first_x)")
+        else:
+            default = FIELDS[field]
+            kind = type(default) if isinstance(default, (bool, int, float)) else float
+        try:
+            if kind is bool:
+                if value.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(value)
+                opts[field] = value.lower() in ("true", "1")
+            elif value.lower() == "none" and FIELDS.get(field, 0) is None:
+                opts[field] = None
+            else:
+                opts[field] = kind(value)
+        except ValueError:
+            raise ValueError(f"{spec!r}: {field} = {value!r} is not a {kind.__name__}") from None
+    return name, opts
+
+
+class _Finest:
+    """What the finest level's variants need: the model built first by a run (the scene's
+    own; its coarser levels are built after it) and the rows of its variants."""
+
+    model = None
+    pressure = None
+    variants: list = []
+    rows: list = []
+
+
+class Varied(PseudoTransient):
+    """The run's pseudo-time solves; on the finest model's, each variant from its start."""
+
+    def run(self):
+        model = _Finest.model
+        if model is None or self.problem.u is not model.u or _Finest.pressure is None:
+            return super().run()
+        pb = self.problem
+        start = pb.u.vector.copy()
+        cap = float(model.exponent_cap.value)
+        base = {f.name: getattr(self, f.name) for f in dataclasses.fields(PseudoTransient)
+                if f.name not in FIXED - {"problem", "on_step", "ramp"}}
+        n_owned = model.V.dofmap.index_map.size_local * 3
+        first = None
+        last = info = None
+        for name, opts in _Finest.variants:
+            start.copy(pb.u.vector)
+            pb.u.x.scatter_forward()
+            model.exponent_cap.value = cap
+            pb.reset_pattern()
+            o = dict(opts)
+            if "k_first_x" in o:
+                o["k_first"] = o.pop("k_first_x") * base["k0"]
+            ptc = PseudoTransient(**{**base, **o})
+            t0 = time.perf_counter()
+            info = ptc.run()
+            wall = time.perf_counter() - t0
+            x = model.view.gather(model.u.x.array[:n_owned])
+            dist = None
+            if x is not None:
+                if first is None:
+                    first = x.copy()
+                dist = float(np.linalg.norm(x - first, axis=1).max(initial=0.0))
+            _Finest.rows.append({
+                "pressure_kPa": _Finest.pressure, "variant": name, "options": opts,
+                "steps": len(ptc.history), "refused": len(ptc.history) - ptc.accepted_steps,
+                "converged": bool(info.converged), "wall_s": wall, "linear_s": ptc.solve_s,
+                "residual": float(info.residual_norm), "distance_mm": dist})
+            last = ptc
+        start.destroy()
+        # the run goes on from the last variant's closure, as if it had been the only one
+        self.history, self.stop_reason = last.history, last.stop_reason
+        self.solve_s, self.convexified = last.solve_s, last.convexified
+        self.convexified_ahead, self.symmetric_solves = last.convexified_ahead, \
+            last.symmetric_solves
+        self.floor, self.at_floor = last.floor, last.at_floor
+        return info
+
+
+def _build(scene, comm):
+    model = _BUILD(scene, comm)
+    if _Finest.model is None:
+        _Finest.model = model
+    return model
+
+
+_BUILD = run_mod.build_model
+
+
+def close(size: float, refine: int, pressure_kpa: float) -> None:
+    """The nested closure at one pressure, its finest level once per variant."""
+    scene = mvfem.load_scene(DEMO).with_changes(
+        {"mesh.size": size, "mesh.refine": refine, "load.pressure": f"{pressure_kpa} kPa"})
+    _Finest.model, _Finest.pressure = None, pressure_kpa
+    run_mod.build_model, run_mod.PseudoTransient = _build, Varied
+    try:
+        run_mod.solve(scene, progress=False, write=False)
+    finally:
+        run_mod.build_model, run_mod.PseudoTransient = _BUILD, PseudoTransient
+        _Finest.model = _Finest.pressure = None
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| pressure (kPa) | variant | steps | refused | converged | wall (s) | "
+             "linear solves (s) | largest distance from the first (mm) |",
+             "|---:|---|---:|---:|---|---:|---:|---:|"]
+    for r in rows:
+        d = "-" if r["distance_mm"] is None else f"{r['distance_mm']:.2e}"
+        lines.append(f"| {r['pressure_kPa']:g} | {r['variant']} | {r['steps']} | "
+                     f"{r['refused']} | {r['converged']} | {r['wall_s']:.1f} | "
+                     f"{r['linear_s']:.1f} | {d} |")
+    return "\n".join(lines)
+
+
+def totals(rows: list[dict]) -> str:
+    lines = ["| variant | steps | refused | wall (s) | converged |", "|---|---:|---:|---:|---|"]
+    for name in dict.fromkeys(r["variant"] for r in rows):
+        mine = [r for r in rows if r["variant"] == name]
+        lines.append(f"| {name} | {sum(r['steps'] for r in mine)} | "
+                     f"{sum(r['refused'] for r in mine)} | "
+                     f"{sum(r['wall_s'] for r in mine):.1f} | "
+                     f"{sum(r['converged'] for r in mine)}/{len(mine)} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("variants", nargs="+", help="NAME:FIELD=VALUE,... (NAME: alone: as it is)")
+    p.add_argument("--refine", type=int, default=2, help="times the demo's mesh is refined")
+    p.add_argument("--size", type=float, default=2.0, help="the demo's mesh size, mm")
+    p.add_argument("--pressures", default="16", help="kPa, comma-separated")
+    p.add_argument("--out", default=None, help="write the rows as JSON here")
+    a = p.parse_args(argv)
+    root = MPI.COMM_WORLD.rank == 0
+
+    def error(msg: str) -> int:
+        if root:
+            print(f"level_variants: {msg}", file=sys.stderr)
+        return 2
+    try:
+        pressures = [float(v) for v in a.pressures.split(",")]
+    except ValueError:
+        return error(f"--pressures {a.pressures!r}: not numbers")
+    if a.refine < 1:
+        return error(f"--refine {a.refine}: the finest level must be a nested one (1 or more)")
+    try:
+        variants = [parse_variant(v) for v in a.variants]
+    except ValueError as e:
+        return error(f"variant {e}")
+    names = [n for n, _ in variants]
+    if len(set(names)) != len(names):
+        return error(f"variant names repeat: {', '.join(names)}")
+    if a.out is not None and MPI.COMM_WORLD.bcast(Path(a.out).exists() if root else None):
+        return error(f"--out {a.out}: exists; choose another name")
+    _Finest.variants, _Finest.rows = variants, []
+    for pressure in pressures:
+        done = len(_Finest.rows)
+        try:
+            close(a.size, a.refine, pressure)
+        except InputError as e:
+            return error(str(e))
+        if root:
+            print(table(_Finest.rows[done:]), "\n", flush=True)
+    if root:
+        print(totals(_Finest.rows), flush=True)
+        if a.out is not None:
+            Path(a.out).write_text(json.dumps(_Finest.rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
