@@ -14,9 +14,9 @@ of :class:`mvfem.solver.PseudoTransient` (``min_growth``, ``max_growth``, ``reje
 ``k_first_x``: the first weight as a multiple of the level's start weight ``k0`` (the runs
 use 16, ``mvfem.run.NESTED_FIRST_WEIGHT``); ``NAME:`` alone is the control as it is. The
 run goes on from the last variant's closure. Prints, per pressure, a row per variant: its
-steps, refused steps, convergence, wall time and linear solves, and the largest nodal distance
-of its closure from the first variant's; then each variant's totals. ``--out`` writes the rows
-as JSON (an existing file is refused).
+steps, refused steps, convergence, wall time and linear solves, and the largest and the
+root-mean-square nodal distance of its closure from the first variant's; then each variant's
+totals. ``--out`` writes the rows as JSON (an existing file is refused).
 
 Why: these paths move by tens of percent with roundoff and with any change of the control
 (README, "Solving"), so a control is judged on many pressures, and the coarser levels, the
@@ -122,16 +122,17 @@ class Varied(PseudoTransient):
             info = ptc.run()
             wall = time.perf_counter() - t0
             x = model.view.gather(model.u.x.array[:n_owned])
-            dist = None
+            dist = rms = None
             if x is not None:
                 if first is None:
                     first = x.copy()
-                dist = float(np.linalg.norm(x - first, axis=1).max(initial=0.0))
+                d = np.linalg.norm(x - first, axis=1)
+                dist, rms = float(d.max(initial=0.0)), float(np.sqrt(np.mean(d * d)))
             _Finest.rows.append({
                 "pressure_kPa": _Finest.pressure, "variant": name, "options": opts,
                 "steps": len(ptc.history), "refused": len(ptc.history) - ptc.accepted_steps,
                 "converged": bool(info.converged), "wall_s": wall, "linear_s": ptc.solve_s,
-                "residual": float(info.residual_norm), "distance_mm": dist})
+                "residual": float(info.residual_norm), "distance_mm": dist, "rms_mm": rms})
             last = ptc
         start.destroy()
         # the run goes on from the last variant's closure, as if it had been the only one
@@ -168,10 +169,11 @@ def close(size: float, refine: int, pressure_kpa: float) -> None:
 
 def table(rows: list[dict]) -> str:
     lines = ["| pressure (kPa) | variant | steps | refused | converged | wall (s) | "
-             "linear solves (s) | largest distance from the first (mm) |",
+             "linear solves (s) | largest / rms distance from the first (mm) |",
              "|---:|---|---:|---:|---|---:|---:|---:|"]
     for r in rows:
-        d = "-" if r["distance_mm"] is None else f"{r['distance_mm']:.2e}"
+        d = "-" if r["distance_mm"] is None else \
+            f"{r['distance_mm']:.2e} / {r['rms_mm']:.2e}"
         lines.append(f"| {r['pressure_kPa']:g} | {r['variant']} | {r['steps']} | "
                      f"{r['refused']} | {r['converged']} | {r['wall_s']:.1f} | "
                      f"{r['linear_s']:.1f} | {d} |")
