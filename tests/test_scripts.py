@@ -258,9 +258,12 @@ def test_level_variants_script(tmp_path):
     room the first run grew, the repeat took 75 steps against 72; without the state set back
     the capped variant started at the first one's closure and took none). A field
     PseudoTransient lacks, and an existing ``--out``, exit 2 with one line."""
+    import mvfem
     from mvfem.run import solve
 
-    plain = solve(mvfem_demo_scene(size=5, refine=1), progress=False, write=False)
+    scene = mvfem.load_scene(ROOT / "mvfem" / "data" / "demo.toml").with_changes(
+        {"mesh.size": 5, "mesh.refine": 1})
+    plain = solve(scene, progress=False, write=False)
     out = tmp_path / "variants.json"
     cmd = [sys.executable, str(ROOT / "scripts" / "level_variants.py"), "--size", "5",
            "--refine", "1", "--pressures", "16", "--out", str(out),
@@ -280,14 +283,6 @@ def test_level_variants_script(tmp_path):
         e = run_child(bad, capture_output=True, text=True, env=_env(), timeout=600,
                       check=False)
         assert e.returncode == 2 and what in e.stderr and "Traceback" not in e.stderr
-
-
-def mvfem_demo_scene(size: float, refine: int):
-    """`mvfem demo`'s scene at mesh ``size`` (mm), refined ``refine`` times."""
-    import mvfem
-
-    return mvfem.load_scene(Path(mvfem.__file__).parent / "data" / "demo.toml").with_changes(
-        {"mesh.size": size, "mesh.refine": refine})
 
 
 def test_level_costs_names_how_each_level_started():
