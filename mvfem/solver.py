@@ -117,7 +117,6 @@ class SNESProblem:
         self._ksp_sym: PETSc.KSP | None = None
         self._pattern = (fem.form(pattern, **kw) if pattern is not None else self.a,
                          fem.form(sparsity, **kw) if sparsity is not None else None)
-        self.A = self.forms_matrix()
         self.Pi = fem.form(potential, **kw) if potential is not None else None
         self.P = fem.form(load, **kw) if load is not None else None
         self._pv = fpetsc.create_vector(self.P) if self.P is not None else None
@@ -125,10 +124,7 @@ class SNESProblem:
         self.comm = u.function_space.mesh.comm
         #: how often the matrix was given room for new couplings of the point terms
         self.regrowths = 0
-        self._room = None
-        if self.point_terms is not None:  # contact pairs couple nodes the forms do not
-            self.A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
-            self._room = self._gather_pattern()
+        self.A, self._room = self._first_matrix()
         self.b = fpetsc.create_vector(self.L)
         self.x = u.vector.copy()
         self.assembly_s = 0.0
@@ -174,15 +170,15 @@ class SNESProblem:
             A.assemble()
         return A
 
-    def _gather_pattern(self):
-        """The matrix's nonzero pattern, every row in the global numbering, on rank 0
-        (indptr, cols); None elsewhere (collective)."""
-        if not self.A.assembled:  # (the forms' pattern, preallocated, is kept by assembling them)
+    def _gather_pattern(self, A: PETSc.Mat):
+        """``A``'s nonzero pattern, every row in the global numbering, on rank 0 (indptr,
+        cols); None elsewhere (collective)."""
+        if not A.assembled:  # (the forms' pattern, preallocated, is kept by assembling them)
             from dolfinx.fem import petsc as fpetsc
 
-            fpetsc.assemble_matrix(self.A, self.a, bcs=self.bcs)
-            self.A.assemble()
-        ai, aj, _ = self.A.getValuesCSR()
+            fpetsc.assemble_matrix(A, self.a, bcs=self.bcs)
+            A.assemble()
+        ai, aj, _ = A.getValuesCSR()
         parts = self.comm.gather((np.asarray(ai, dtype=np.int64), np.asarray(aj, dtype=np.int64)),
                                  root=0)
         if self.comm.rank != 0:
@@ -216,6 +212,16 @@ class SNESProblem:
         self.A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
         self.regrowths += 1
 
+    def _first_matrix(self) -> tuple[PETSc.Mat, tuple | None]:
+        """The matrix as constructed (collective): the forms' and ``sparsity``'s pattern, and
+        with point terms the room they start from (:meth:`_gather_pattern`; their contact
+        pairs couple nodes the forms do not, :meth:`_make_room` grows it)."""
+        A = self.forms_matrix()
+        if self.point_terms is None:
+            return A, None
+        A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+        return A, self._gather_pattern(A)
+
     def reset_pattern(self) -> None:
         """Make the matrix anew with the pattern it had when constructed (the forms' and
         ``sparsity``'s; collective): the room for the point terms' couplings is made again as
@@ -224,10 +230,7 @@ class SNESProblem:
         earlier solve grew, it does not (MUMPS orders the larger pattern otherwise, and
         roundoff moves these paths: ``scripts/level_variants.py``)."""
         self.A.destroy()
-        self.A = self.forms_matrix()
-        if self.point_terms is not None:
-            self.A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
-            self._room = self._gather_pattern()
+        self.A, self._room = self._first_matrix()
         self.snes.setJacobian(self._jacobian, self.A)
         for ksp in (self.snes.getKSP(), self._ksp_sym):
             if ksp is not None:

@@ -44,12 +44,14 @@ from mvfem.solver import PseudoTransient
 
 DEMO = Path(mvfem.__file__).parent / "data" / "demo.toml"
 
-#: what a variant may not set: the problem, the hooks and what a run reports
-FIXED = {"problem", "on_step", "ramp", "history", "stop_reason", "solve_s", "convexified",
-         "convexified_ahead", "symmetric_solves", "floor", "at_floor"}
+#: what a run reports (the run goes on with the last variant's)
+REPORTS = {"history", "stop_reason", "solve_s", "convexified", "convexified_ahead",
+           "symmetric_solves", "floor", "at_floor"}
+#: what every variant keeps: the problem and the hooks
+HOOKS = {"problem", "on_step", "ramp"}
 #: the fields a variant may set, with their defaults (their types read the values)
 FIELDS = {f.name: f.default for f in dataclasses.fields(PseudoTransient)
-          if f.name not in FIXED}
+          if f.name not in REPORTS | HOOKS}
 
 
 def parse_variant(spec: str) -> tuple[str, dict]:
@@ -108,8 +110,7 @@ class Varied(PseudoTransient):
         pb = self.problem
         start = pb.u.vector.copy()
         cap = float(model.exponent_cap.value)
-        base = {f.name: getattr(self, f.name) for f in dataclasses.fields(PseudoTransient)
-                if f.name not in FIXED - {"problem", "on_step", "ramp"}}
+        base = {name: getattr(self, name) for name in (*FIELDS, *HOOKS)}
         n_owned = model.V.dofmap.index_map.size_local * 3
         first = None
         last = info = None
@@ -140,11 +141,8 @@ class Varied(PseudoTransient):
             last = ptc
         start.destroy()
         # the run goes on from the last variant's closure, as if it had been the only one
-        self.history, self.stop_reason = last.history, last.stop_reason
-        self.solve_s, self.convexified = last.solve_s, last.convexified
-        self.convexified_ahead, self.symmetric_solves = last.convexified_ahead, \
-            last.symmetric_solves
-        self.floor, self.at_floor = last.floor, last.at_floor
+        for name in REPORTS:
+            setattr(self, name, getattr(last, name))
         return info
 
 
