@@ -252,7 +252,7 @@ def _cmd_study(args) -> int:
 def _cmd_repair_compare(args) -> int:
     from pathlib import Path
 
-    from mvfem.compare import compare, table_text
+    from mvfem.compare import compare, parse_paths, table_text
     from mvfem.scene import parse_set_option
     from mvfem.units import PRESSURE, parse_quantity
 
@@ -263,10 +263,15 @@ def _cmd_repair_compare(args) -> int:
         except ValueError as e:
             raise InputError(f"--diastolic: {e}") from None
     changes = dict(parse_set_option(t) for t in (args.set or []))
+    paths = parse_paths(args.paths) if args.paths is not None else None
     out = Path(args.out) if args.out else Path("results") / f"{Path(args.scene).stem}-repairs"
     res = compare(args.scene, args.repairs, out, processes=args.processes, diastolic=diastolic,
-                  changes=changes, progress=True)
+                  changes=changes, progress=True, paths=paths)
     _say(table_text(res["rows"]))
+    if paths:
+        _say("[min, max]: over the converged systolic runs with solver.ramp_steps "
+             f"{', '.join(map(str, paths))} and the scene's own (cases with a prescribed motion; "
+             "comparison.csv path_ramp_steps)")
     _say(f"wrote {', '.join(str(p) for p in res['files'])}")
     return 0
 
@@ -378,6 +383,10 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--no-diastole", action="store_true", help="systolic runs only")
     rc.add_argument("--set", action="append", metavar="KEY.PATH=VALUE",
                     help="change a scene value in every case, e.g. --set mesh.size=4.0")
+    rc.add_argument("--paths", metavar="N,N,...",
+                    help="close each case with a prescribed motion again with each of these "
+                    "solver.ramp_steps (e.g. 10,20,30,40): comparison.csv gains the range of "
+                    "orifice, coaptation and tenting over the solver's paths")
     rc.set_defaults(func=_cmd_repair_compare)
     be = sub.add_parser("bench", help="speed against error on reference problems: bench.csv, "
                         "bench_pareto.png, bench.md")

@@ -17,6 +17,17 @@ every run is one ``mvfem run`` process of the study runner (:mod:`mvfem.study`: 
   colour range for all) and from the side (the A2-P2 direction across), and the diastolic
   valves seen from the atrium.
 
+With ``paths`` (``--paths 10,20,30,40``), every case with a prescribed motion (a ring, a clip,
+sutures, moved papillary tips) is closed again at systole with each of those
+``solver.ramp_steps``: the same scene and pressure, only the path to the equilibrium differs.
+A ring that shrinks the annulus leaves the leaflets more tissue than the orifice needs, and
+the path picks among the folds they can rest in (README "Repairs", "Which closure"), so the
+csv gains, for the regurgitant orifice, both coaptation lengths and the tenting height, the
+smallest and largest value over the converged systolic runs (``PATH_COLUMNS``); the printed
+table shows them as ``[min, max]`` and comparison.png as a line over each bar. Differences
+between repairs within those ranges are not differences. A case without a prescribed motion
+has no ramp to vary: no extra runs, and its ranges stay empty.
+
 A repair file is a TOML table of scene keys merged into the scene: tables key by key, other
 values (numbers, strings, lists such as ``[[repair.clip]]`` or ``chordae.edit``) replace the
 scene's. Its ``title`` names the repair (default: the file's stem); file names in it
@@ -38,7 +49,8 @@ import numpy as np
 from mvfem.errors import InputError
 from mvfem.scene import read_toml
 
-__all__ = ["COLUMNS", "DIASTOLIC_PRESSURE", "compare", "load_repair"]
+__all__ = ["COLUMNS", "DIASTOLIC_PRESSURE", "PATH_COLUMNS", "PATH_KEYS", "compare",
+           "load_repair", "parse_paths"]
 
 #: the atrial-side pressure of the diastolic check (Pa): the valve opens; a clip shows its two
 #: orifices
@@ -50,6 +62,22 @@ COLUMNS = ("case", "title", "systole", "regurgitant_orifice_area_mm2",
            "chordae_force_max_N", "neochord_force_total_N", "tie_force_max_N", "diastole",
            "diastolic_orifice_area_mm2", "diastolic_orifice_count", "diastolic_orifice_areas_mm2",
            "run_dir")
+#: the numbers whose spread over the solver's paths ``--paths`` measures
+PATH_KEYS = ("regurgitant_orifice_area_mm2", "coaptation_length_mm", "coaptation_trace_length_mm",
+             "tenting_height_mm")
+
+
+def _bound(key: str, which: str) -> str:
+    """``coaptation_length_mm`` -> ``coaptation_length_min_mm`` (``which`` min or max)."""
+    base, unit = key.rsplit("_", 1)
+    return f"{base}_{which}_{unit}"
+
+
+#: appended to ``COLUMNS`` (empty without ``--paths``): the ramp_steps of the case's converged
+#: systolic runs (its own first) and each PATH_KEY's smallest and largest value over them
+PATH_COLUMNS = ("path_ramp_steps",) + tuple(_bound(k, w) for k in PATH_KEYS
+                                             for w in ("min", "max"))
+COLUMNS = COLUMNS + PATH_COLUMNS
 #: keys whose values are file names (resolved against the repair file's directory)
 _PATH_KEYS = ("mesh.file", "mesh.annulus", "mesh.papillary", "reference.file",
               "annulus.target", "papillary.target")
@@ -100,12 +128,40 @@ def _check_buildable(scene, label: str) -> dict:
         raise InputError(f"{label}: {text}") from None
     s = model.surface
     return {"frame": np.asarray(getattr(s, "frame", np.eye(3)), dtype=float),
-            "centre": np.asarray(getattr(s, "centre", np.zeros(3)), dtype=float)}
+            "centre": np.asarray(getattr(s, "centre", np.zeros(3)), dtype=float),
+            "motion": bool(model.motion), "ramp_steps": int(model.ramp_steps)}
+
+
+def parse_paths(text) -> list[int]:
+    """``"10,20,30,40"`` (or a list) -> the ``solver.ramp_steps`` values of ``--paths``,
+    in order, without repeats.
+
+    Raises:
+        InputError: one line, when a value is not a positive whole number.
+    """
+    items = [t.strip() for t in text.split(",")] if isinstance(text, str) else list(text)
+    out = []
+    for t in items:
+        if t == "":
+            continue
+        try:
+            n = int(t)
+        except (TypeError, ValueError):
+            n = 0
+        if n < 1 or str(n) != str(t).strip():
+            raise InputError(f"--paths: {text!r}: expected solver.ramp_steps values, positive "
+                             f"whole numbers separated by commas (e.g. 10,20,30,40)")
+        if n not in out:
+            out.append(n)
+    if not out:
+        raise InputError(f"--paths: {text!r}: give at least one solver.ramp_steps value")
+    return out
 
 
 def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: int | None = None,
             diastolic: float | None = DIASTOLIC_PRESSURE, changes: dict | None = None,
-            progress: bool = True, timeout: float | None = None) -> dict:
+            progress: bool = True, timeout: float | None = None,
+            paths: list | None = None) -> dict:
     """Run the unrepaired scene and each repair; write the comparison (module docstring).
 
     Args:
@@ -116,6 +172,8 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
         diastolic: the pressure (Pa, negative: atrial side) of the diastolic runs; None skips
             them.
         changes: scene changes applied to every case first (``--set``).
+        paths: ``solver.ramp_steps`` values (:func:`parse_paths`): each case with a prescribed
+            motion is closed again with each one that is not its own (module docstring).
 
     Returns:
         dict with ``rows`` (the table), ``files``, ``counts``.
@@ -136,18 +194,19 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
     if diastolic is not None and not diastolic < 0:
         raise InputError(f"--diastolic: expected a negative (atrial-side) pressure, got "
                          f"{diastolic:g} Pa")
+    paths = parse_paths(paths) if paths is not None else []
     cases = [("unrepaired", "unrepaired", {})]
     for r in repairs:
         name, title, ch = load_repair(r, base.with_changes(changes) if changes else base)
         while name in [c[0] for c in cases]:
             name += "_"
         cases.append((name, title, ch))
-    view = None
+    view, built = None, {}
     for name, _title, ch in cases:  # every repair built before anything runs
-        v = _check_buildable(base.with_changes({**changes, **ch}),
-                             "the scene" if name == "unrepaired" else
-                             str(repairs[[c[0] for c in cases].index(name) - 1]))
-        view = view or v
+        built[name] = _check_buildable(base.with_changes({**changes, **ch}),
+                                       "the scene" if name == "unrepaired" else
+                                       str(repairs[[c[0] for c in cases].index(name) - 1]))
+        view = view or built[name]
     phases = [("systole", {})]
     if diastolic is not None:
         phases.append(("diastole", {"load.pressure": float(diastolic)}))
@@ -164,8 +223,17 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
             runs.append(RunSpec(case=name, set=phase, anterior_set=sets["anterior"],
                                 posterior_set=sets["posterior"], scene=str(scene_path),
                                 changes=all_changes, regions=regions, scene_sha256=digest))
+        if not built[name]["motion"]:
+            continue  # no ramp: every path is the same
+        for n in paths:
+            if n != built[name]["ramp_steps"]:
+                runs.append(RunSpec(case=name, set=f"path-{n}", anterior_set=sets["anterior"],
+                                    posterior_set=sets["posterior"], scene=str(scene_path),
+                                    changes={**changes, **ch, "solver.ramp_steps": n},
+                                    regions=regions, scene_sha256=digest))
     study = Study(title=f"repairs of {base['title'] or scene_path.name}", cases=study_cases,
-                  sets=[p for p, _ in phases], processes=processes or 1, timeout_s=timeout,
+                  sets=[p for p, _ in phases] + [f"path-{n}" for n in paths],
+                  processes=processes or 1, timeout_s=timeout,
                   map_case="unrepaired", include_stopped=True, biaxial=False, runs=runs,
                   source=str(scene_path))
     out = prepare_out(out).resolve()
@@ -195,6 +263,7 @@ def _rows(study, out: Path, titles: dict) -> list[dict]:
     for case in study.cases:
         row = dict.fromkeys(COLUMNS)
         row.update(case=case.name, title=titles[case.name])
+        closed = []  # (ramp_steps, valve) of the converged systolic runs with a motion
         for spec in study.runs:
             if spec.case != case.name:
                 continue
@@ -203,6 +272,12 @@ def _rows(study, out: Path, titles: dict) -> list[dict]:
             status = "missing" if s is None else ("converged" if s.get("converged")
                                                   else "stopped")
             v = (s or {}).get("valve") or {}
+            if spec.set == "systole" or spec.set.startswith("path-"):
+                motion = (s or {}).get("motion")
+                if status == "converged" and motion:
+                    closed.append((motion.get("ramp_steps"), v))
+                if spec.set != "systole":
+                    continue
             if spec.set == "systole":
                 row["systole"] = status
                 row["run_dir"] = str(d.relative_to(out))
@@ -230,8 +305,23 @@ def _rows(study, out: Path, titles: dict) -> list[dict]:
                 areas = v.get("orifice_areas_mm2")
                 row["diastolic_orifice_areas_mm2"] = (" ".join(f"{a:.1f}" for a in areas)
                                                      if areas else None)
+        if any(r.case == case.name and r.set.startswith("path-") for r in study.runs):
+            _path_ranges(row, closed)
         rows.append(row)
     return rows
+
+
+def _path_ranges(row: dict, closed: list) -> None:
+    """Set ``row``'s PATH_COLUMNS from ``closed``, the (ramp_steps, valve summary) of the
+    case's converged systolic runs, its own first."""
+    if not closed:
+        return
+    row["path_ramp_steps"] = " ".join(str(n) for n, _ in closed)
+    for k in PATH_KEYS:
+        vals = [float(v[k]) for _, v in closed if v.get(k) is not None
+                and math.isfinite(float(v[k]))]
+        if vals:
+            row[_bound(k, "min")], row[_bound(k, "max")] = min(vals), max(vals)
 
 
 def _fmt(v) -> str:
@@ -284,6 +374,9 @@ def table_text(rows: list[dict]) -> str:
                 cells.append(f[1:].format(v / 1e3))
             else:
                 cells.append(f.format(v))
+            if key in PATH_KEYS and r.get(_bound(key, "min")) is not None:
+                cells[-1] += (f" [{f.format(r[_bound(key, 'min')])}, "
+                              f"{f.format(r[_bound(key, 'max')])}]")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -314,13 +407,23 @@ def _bars(rows: list[dict], path: Path) -> Path | None:
     for ax, (key, label, scale) in zip(axes.ravel(), panels):
         vals = np.array([np.nan if r.get(key) is None else r[key] * scale for r in rows])
         ax.bar(range(len(rows)), np.nan_to_num(vals), color=colours)
+        # --paths: the range over the solver's paths, a line over the bar
+        lo, hi = (np.array([np.nan if key not in PATH_KEYS or r.get(_bound(key, w)) is None
+                            else r[_bound(key, w)] * scale for r in rows]) for w in ("min", "max"))
+        ranged = np.isfinite(lo)
+        if ranged.any():
+            x = np.flatnonzero(ranged)
+            ax.vlines(x, lo[ranged], hi[ranged], color="k", linewidth=1.2)
+            for y in (lo[ranged], hi[ranged]):
+                ax.hlines(y, x - 0.12, x + 0.12, color="k", linewidth=1.2)
         ax.axhline(0.0, color="k", linewidth=0.6)
         ax.set_title(label, fontsize=10)
         ax.set_xticks(range(len(rows)))
         ax.set_xticklabels(names, rotation=30, ha="right", fontsize=8)
-        top = np.nanmax(np.abs(vals)) if np.isfinite(vals).any() else 1.0
-        ax.set_ylim(min(0.0, np.nanmin(vals) * 1.15) if np.isfinite(vals).any() else 0.0,
-                    1.18 * top if top > 0 else 1.0)
+        everything = np.concatenate([vals, lo, hi])
+        top = np.nanmax(np.abs(everything)) if np.isfinite(everything).any() else 1.0
+        ax.set_ylim(min(0.0, np.nanmin(everything) * 1.15) if np.isfinite(everything).any()
+                    else 0.0, 1.18 * top if top > 0 else 1.0)
         status_key = "diastole" if key == "diastolic_orifice_area_mm2" else "systole"
         for i, r in enumerate(rows):
             words = []
@@ -333,12 +436,15 @@ def _bars(rows: list[dict], path: Path) -> Path | None:
                 words.append(f"{n} orifice{'s' if n != 1 else ''}")
             if r.get(status_key) not in (None, "converged"):
                 words.append(f"({r.get(status_key)})")
-            ax.annotate("\n".join(words), (i, max(vals[i], 0.0) if np.isfinite(vals[i]) else 0.0),
+            ax.annotate("\n".join(words), (i, np.nanmax([vals[i], hi[i], 0.0])),
                         ha="center", va="bottom", fontsize=7,
                         color="red" if r.get(status_key) not in (None, "converged") else "k")
     legend = "; ".join(f"{r['case']} = {r['title']}" for r in rows if r["title"] != r["case"])
+    paths = any(r.get("path_ramp_steps") for r in rows)
     fig.suptitle("repairs compared: systole at the scene's pressure; diastolic orifice under "
-                 "an atrial-side pressure" + (f"\n{legend}" if legend else ""), fontsize=10)
+                 "an atrial-side pressure" + ("; lines over the bars: the range over the "
+                                              "solver's paths (--paths)" if paths else "")
+                 + (f"\n{legend}" if legend else ""), fontsize=10)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -356,11 +462,13 @@ def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None
     from mvfem.figures import read_fields
 
     plt = _plt()
-    phases = study.sets
+    phases = [p for p in study.sets if p in ("systole", "diastole")]  # (not --paths' runs)
     cases = [c.name for c in study.cases]
     titles = titles or {}
     data = {}
     for spec in study.runs:
+        if spec.set not in phases:
+            continue
         f = read_fields(spec.dir(out))
         if f is not None:
             data[(spec.case, spec.set)] = f

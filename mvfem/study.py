@@ -559,8 +559,11 @@ def run_study(study: Study | str | Path | dict, out: str | Path, processes: int 
                 todo.append(spec)
         total = len(study.runs)
         prog = _Progress(total, progress)
-        prog.line(f"study {study.title or study.source}: {total} runs ({len(study.cases)} cases x "
-                  f"{len(study.sets)} sets), {skipped} finished before, {len(todo)} to run"
+        grid = (f"{len(study.cases)} cases x {len(study.sets)} sets"
+                if total == len(study.cases) * len(study.sets) else
+                f"{len(study.cases)} cases; {', '.join(study.sets)}")
+        prog.line(f"study {study.title or study.source}: {total} runs ({grid}), "
+                  f"{skipped} finished before, {len(todo)} to run"
                   + (f", {min(processes, len(todo))} at a time; logs in {out / 'runs'}"
                      if todo else ""))
         ran = _schedule(study, out, todo, processes, prog, skipped, total, cpus)

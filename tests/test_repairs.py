@@ -308,6 +308,99 @@ def test_repair_compare_names_the_repair_file(tmp_path):
     assert r.returncode == 2 and str(typo) in r.stderr and "rnig" in r.stderr, r.stderr
 
 
+@pytest.mark.parametrize("paths", ["0", "10,x", "2.5", ","])
+def test_repair_compare_refuses_bad_paths(paths, tmp_path):
+    """--paths takes positive whole numbers (solver.ramp_steps): anything else is one line
+    naming --paths, exit 2, and no run started."""
+    good = tmp_path / "clip.toml"
+    good.write_text('[[repair.clip]]\nat = 0.5\n')
+    out = tmp_path / "cmp"
+    r = _cli("repair-compare", str(DEMO), "--repairs", str(good), "--out", str(out),
+             "--paths", paths, "--set", "mesh.size=5.0")
+    assert r.returncode == 2, r.stderr[-2000:]
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mvfem: error: --paths"), r.stderr
+    assert not (out / "runs").exists()
+
+
+def test_repair_compare_ranges_over_the_solvers_paths(tmp_path):
+    """`repair-compare --paths 10,40` on the 5 mm demo with a clip (a prescribed motion: its
+    ties drawn tight over solver.ramp_steps): the clip is closed again with ramp_steps 10 and
+    40 (each run's summary.json says so), the unrepaired valve, which has no motion, is not;
+    the clip's csv range of each number is the smallest and largest of its three runs'
+    summaries, and its own value lies in it; the printed table shows the range; a run of
+    the same scene made here with ramp_steps 40 gives that run's coaptation."""
+    import csv
+
+    from mvfem.compare import PATH_COLUMNS
+
+    clip = tmp_path / "clip.toml"
+    clip.write_text('title = "clip"\n[[repair.clip]]\nat = 0.5\n')
+    out = tmp_path / "cmp"
+    r = _cli("repair-compare", str(DEMO), "--repairs", str(clip), "--out", str(out),
+             "--paths", "10,40", "--no-diastole", "--set", "mesh.size=5.0")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert sorted(p.name for p in (out / "runs" / "unrepaired").iterdir()) == ["systole"]
+    assert sorted(p.name for p in (out / "runs" / "clip").iterdir()) == \
+        ["path-10", "path-40", "systole"]
+    rows = {row["case"]: row for row in csv.DictReader((out / "comparison.csv").open())}
+    assert all(rows["unrepaired"][c] == "" for c in PATH_COLUMNS)
+    summaries = {d: json.loads((out / "runs" / "clip" / d / "summary.json").read_text())
+                 for d in ("systole", "path-10", "path-40")}
+    assert all(s["converged"] for s in summaries.values())
+    assert [summaries[d]["motion"]["ramp_steps"] for d in ("systole", "path-10", "path-40")] \
+        == [20, 10, 40]
+    row = rows["clip"]
+    assert row["path_ramp_steps"] == "20 10 40"
+    for key in ("coaptation_length_mm", "coaptation_trace_length_mm", "tenting_height_mm",
+                "regurgitant_orifice_area_mm2"):
+        vals = [s["valve"][key] for s in summaries.values()]
+        base, unit = key.rsplit("_", 1)
+        lo, hi = float(row[f"{base}_min_{unit}"]), float(row[f"{base}_max_{unit}"])
+        assert lo == pytest.approx(min(vals), rel=1e-5, abs=1e-9), key
+        assert hi == pytest.approx(max(vals), rel=1e-5, abs=1e-9), key
+        assert lo <= float(row[key]) <= hi, key
+    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("| clip "))
+    assert line.count("[") == 4, line
+    own = mvfem.solve(mvfem.load_scene(DEMO).with_changes(
+        {"mesh.size": 5.0, "repair.clip": [{"at": 0.5}], "solver.ramp_steps": 40}),
+        progress=False, write=False).summary
+    assert own["valve"]["coaptation_length_mm"] == pytest.approx(
+        summaries["path-40"]["valve"]["coaptation_length_mm"], rel=1e-6)
+
+
+def test_repair_compare_path_range_leaves_out_stopped_runs(tmp_path):
+    """The range is over the converged systolic runs only, the case's own first; diastolic
+    runs and a case with no path run leave it alone (summaries written here)."""
+    from mvfem.compare import _rows
+    from mvfem.study import Case, RunSpec, Study
+
+    def spec(case, s):
+        return RunSpec(case=case, set=s, anterior_set="", posterior_set="", scene="x",
+                       changes={}, regions=[])
+
+    runs = [spec("a", "systole"), spec("a", "diastole"), spec("a", "path-10"),
+            spec("a", "path-30"), spec("a", "path-40"), spec("b", "systole")]
+    values = {("a", "systole"): (True, 20, 5.0), ("a", "diastole"): (True, 20, 99.0),
+              ("a", "path-10"): (True, 10, 7.5), ("a", "path-30"): (False, 30, 1.0),
+              ("a", "path-40"): (True, 40, 6.0), ("b", "systole"): (True, 20, 3.0)}
+    for r in runs:
+        ok, n, c = values[(r.case, r.set)]
+        r.dir(tmp_path).mkdir(parents=True)
+        (r.dir(tmp_path) / "summary.json").write_text(json.dumps(
+            {"converged": ok, "motion": {"ramp_steps": n},
+             "valve": {"coaptation_length_mm": c, "tenting_height_mm": -c}}))
+    study = Study(title="", cases=[Case("a", "x"), Case("b", "x")], sets=[], processes=1,
+                  timeout_s=None, map_case="a", include_stopped=True, biaxial=False, runs=runs)
+    a, b = _rows(study, tmp_path, {"a": "a", "b": "b"})
+    assert a["path_ramp_steps"] == "20 10 40"
+    assert (a["coaptation_length_min_mm"], a["coaptation_length_max_mm"]) == (5.0, 7.5)
+    assert (a["tenting_height_min_mm"], a["tenting_height_max_mm"]) == (-7.5, -5.0)
+    assert a["regurgitant_orifice_area_min_mm2"] is None  # not in the summaries
+    assert a["coaptation_length_mm"] == 5.0
+    assert b["path_ramp_steps"] is None and b["coaptation_length_min_mm"] is None
+
+
 # --------------------------------------------------------------------------- closures (slow)
 PATHOLOGICAL = SCENES / "valve_pathological.toml"
 REPAIRS = SCENES / "repairs"
