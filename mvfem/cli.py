@@ -269,9 +269,9 @@ def _cmd_repair_compare(args) -> int:
                   changes=changes, progress=True, paths=paths)
     _say(table_text(res["rows"]))
     if paths:
-        _say("[min, max]: over the converged systolic runs with solver.ramp_steps "
-             f"{', '.join(map(str, paths))} and the scene's own (cases with a prescribed motion; "
-             "comparison.csv path_ramp_steps)")
+        _say("[min, max]: over each case's converged systolic runs at solver.ramp_steps "
+             f"{', '.join(map(str, paths))} and at its own where that is another (cases with a "
+             "prescribed motion; comparison.csv path_ramp_steps lists them)")
     _say(f"wrote {', '.join(str(p) for p in res['files'])}")
     return 0
 
