@@ -268,7 +268,7 @@ def _cmd_repair_compare(args) -> int:
     res = compare(args.scene, args.repairs, out, processes=args.processes, diastolic=diastolic,
                   changes=changes, progress=True, paths=paths)
     _say(table_text(res["rows"]))
-    if paths:
+    if any(r.get("path_ramp_steps") for r in res["rows"]):
         _say("[min, max]: over each case's converged systolic runs at solver.ramp_steps "
              f"{', '.join(map(str, paths))} and at its own where that is another (cases with a "
              "prescribed motion; comparison.csv path_ramp_steps lists them)")
