@@ -272,6 +272,10 @@ def _cmd_repair_compare(args) -> int:
         _say("[min, max]: over each case's converged systolic runs at solver.ramp_steps "
              f"{', '.join(map(str, paths))} and at its own where that is another (cases with a "
              "prescribed motion; comparison.csv path_ramp_steps lists them)")
+    elif res["moving"] and not paths:
+        _say(f"{', '.join(res['moving'])}: a prescribed motion (ring, ties); where the leaflets "
+             "can fold, the closure depends on the solver's path: --paths 10,20,30,40 gives "
+             "each number's range (README, Repairs)")
     _say(f"wrote {', '.join(str(p) for p in res['files'])}")
     return 0
 

@@ -176,7 +176,8 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
             motion is closed again with each one that is not its own (module docstring).
 
     Returns:
-        dict with ``rows`` (the table), ``files``, ``counts``.
+        dict with ``rows`` (the table), ``files``, ``counts``, ``moving`` (the cases with a
+        prescribed motion, whose closure ``paths`` can vary).
     """
     import hashlib
 
@@ -243,7 +244,8 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
     files += [p for p in (_bars(rows, out / "comparison.png"),
                           _shapes(study, out, view, out / "shapes.png",
                                   {c[0]: c[1] for c in cases}, diastolic)) if p is not None]
-    return {"rows": rows, "files": files, "counts": res}
+    return {"rows": rows, "files": files, "counts": res,
+            "moving": [name for name, _t, _c in cases if built[name]["motion"]]}
 
 
 # --------------------------------------------------------------------------- table

@@ -362,6 +362,7 @@ def test_repair_compare_ranges_over_the_solvers_paths(tmp_path):
         assert lo <= float(row[key]) <= hi, key
     line = next(ln for ln in r.stdout.splitlines() if ln.startswith("| clip "))
     assert line.count("[") == 4, line
+    assert "gives each number's range" not in r.stdout  # (measured: no nudge)
     own = mvfem.solve(mvfem.load_scene(DEMO).with_changes(
         {"mesh.size": 5.0, "repair.clip": [{"at": 0.5}], "solver.ramp_steps": 40}),
         progress=False, write=False).summary
@@ -666,6 +667,9 @@ def test_repair_compare_end_to_end(tmp_path):
             assert float(row[key]) == pytest.approx(v[key], rel=1e-5, abs=1e-9), key  # 6 digits
     table = [line for line in r.stdout.splitlines() if line.startswith("| ")]
     assert len(table) == 1 + len(rows)  # header + a line per case
+    note = [line for line in r.stdout.splitlines() if "--paths" in line]  # no --paths given
+    assert len(note) == 1 and note[0].startswith("ring_d36, clip_a2p2: a prescribed motion"), \
+        r.stdout
     for name in ("comparison.png", "shapes.png"):
         data = (out / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000, name
