@@ -195,7 +195,7 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
     if diastolic is not None and not diastolic < 0:
         raise InputError(f"--diastolic: expected a negative (atrial-side) pressure, got "
                          f"{diastolic:g} Pa")
-    paths = parse_paths(paths) if paths is not None else []
+    paths = parse_paths(paths) if paths else []
     cases = [("unrepaired", "unrepaired", {})]
     for r in repairs:
         name, title, ch = load_repair(r, base.with_changes(changes) if changes else base)
@@ -233,7 +233,7 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
                                     changes={**changes, **ch, "solver.ramp_steps": n},
                                     regions=regions, scene_sha256=digest))
     study = Study(title=f"repairs of {base['title'] or scene_path.name}", cases=study_cases,
-                  sets=[p for p, _ in phases] + [f"path-{n}" for n in paths],
+                  sets=list(dict.fromkeys(r.set for r in runs)),  # (path-N: where run)
                   processes=processes or 1, timeout_s=timeout,
                   map_case="unrepaired", include_stopped=True, biaxial=False, runs=runs,
                   source=str(scene_path))
