@@ -24,8 +24,9 @@ A ring that shrinks the annulus leaves the leaflets more tissue than the orifice
 the path picks among the folds they can rest in (README "Repairs", "Which closure"), so the
 csv gains, for the regurgitant orifice, both coaptation lengths and the tenting height, the
 smallest and largest value over the converged systolic runs (``PATH_COLUMNS``); the printed
-table shows them as ``[min, max]`` and comparison.png as a line over each bar. Differences
-between repairs within those ranges are not differences. A case without a prescribed motion
+table shows them as ``[min, max]`` and comparison.png as a line over each bar, and
+``paths.png`` shows each such case's closures side by side (the folds). Differences between
+repairs within those ranges are not differences. A case without a prescribed motion
 has no ramp to vary: no extra runs, and its ranges stay empty.
 
 A repair file is a TOML table of scene keys merged into the scene: tables key by key, other
@@ -241,9 +242,11 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
     res = run_study(study, out, processes=processes, progress=progress, report=False)
     rows = _rows(study, out, {c[0]: c[1] for c in cases})
     files = [_write_csv(rows, out / "comparison.csv")]
+    titles = {c[0]: c[1] for c in cases}
     files += [p for p in (_bars(rows, out / "comparison.png"),
-                          _shapes(study, out, view, out / "shapes.png",
-                                  {c[0]: c[1] for c in cases}, diastolic)) if p is not None]
+                          _shapes(study, out, view, out / "shapes.png", titles, diastolic),
+                          _path_shapes(study, out, view, out / "paths.png", titles))
+              if p is not None]
     return {"rows": rows, "files": files, "counts": res,
             "moving": [name for name, _t, _c in cases if built[name]["motion"]]}
 
@@ -453,6 +456,29 @@ def _bars(rows: list[dict], path: Path) -> Path | None:
     return path
 
 
+#: the leaflets' colours in the figures of shapes (anterior blue, posterior red)
+LEAFLET_COLOURS = np.array([[0.55, 0.7, 0.95, 1.0], [0.95, 0.65, 0.55, 1.0]])
+
+
+def _projection(view: dict | None):
+    """``project(x, kind)``: points ``x`` (n, 3) in the valve's frame ``view`` as 2-D
+    coordinates and a depth (n,): ``kind`` "top", seen from the atrium with the anterior
+    side up (the anterolateral commissure on the left); "side", the anterior side right and
+    the atrium up."""
+    frame = view["frame"] if view else np.eye(3)
+    centre = view["centre"] if view else np.zeros(3)
+    ant, lat, axis = frame[0], frame[1], frame[2]
+    right = -lat
+
+    def project(x, kind):
+        if kind == "top":
+            return (np.stack([(x - centre) @ right, (x - centre) @ ant], axis=1),
+                    (x - centre) @ axis)
+        return np.stack([(x - centre) @ ant, (x - centre) @ axis], axis=1), (x - centre) @ lat
+
+    return project
+
+
 def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None = None,
             diastolic: float | None = None) -> Path | None:
     """The closed (and diastolic) valves side by side: one length scale per row (mm), one
@@ -476,10 +502,7 @@ def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None
             data[(spec.case, spec.set)] = f
     if not data:
         return None
-    frame = view["frame"] if view else np.eye(3)
-    centre = view["centre"] if view else np.zeros(3)
-    ant, lat, axis = frame[0], frame[1], frame[2]
-    right = -lat  # seen from the atrium, anterior up: the anterolateral commissure on the left
+    project = _projection(view)
     stresses = [np.log10(np.clip(f["radial_cauchy_stress_Pa"], 1.0, None))
                 for (c, p), f in data.items() if p == "systole"]
     lo, hi = (np.percentile(np.concatenate(stresses), [5, 95]) if stresses else (0.0, 1.0))
@@ -491,12 +514,6 @@ def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None
     if len(phases) > 1:
         row_names.append("diastole" + (f" ({diastolic:g} Pa)" if diastolic is not None else "")
                          + ",\nseen from the atrium, mm")
-
-    def project(x, kind):
-        if kind == "top":
-            return (np.stack([(x - centre) @ right, (x - centre) @ ant], axis=1),
-                    (x - centre) @ axis)
-        return np.stack([(x - centre) @ ant, (x - centre) @ axis], axis=1), (x - centre) @ lat
 
     # one length scale per row: the same limits in every panel of it
     limits = []
@@ -552,8 +569,7 @@ def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None
                 pc.set_clim(lo, hi if hi > lo else lo + 1e-9)
                 pc_last = pc
             else:
-                colours = np.array([[0.55, 0.7, 0.95, 1.0], [0.95, 0.65, 0.55, 1.0]])
-                pc = PolyCollection(p2[cells[order]], facecolors=colours[leaflet[order]],
+                pc = PolyCollection(p2[cells[order]], facecolors=LEAFLET_COLOURS[leaflet[order]],
                                     edgecolors="k", linewidths=0.1)
             ax.add_collection(pc)
     if pc_last is not None:
@@ -561,6 +577,97 @@ def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None
                      label="radial Cauchy stress\n(log10 Pa; 5-95 % of all cases)")
     fig.suptitle("closed valves, same scale in each row (top row: radial stress, one colour "
                  "range for all; other rows: blue anterior, red posterior)", fontsize=10)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _path_shapes(study, out: Path, view: dict | None, path: Path,
+                 titles: dict | None = None) -> Path | None:
+    """``--paths``: for each case closed along several paths, one row of its systolic
+    closures, its own path first, seen from the side (anterior right, atrium up) over the
+    same view from the atrium, all on one length scale (mm), each titled with its
+    ``ramp_steps``, coaptation length and tenting height: the folds the paths end in. None
+    when no case has path runs."""
+    import textwrap
+
+    from matplotlib.collections import PolyCollection
+
+    from mvfem.figures import read_fields
+
+    rows = []   # (case, [(ramp_steps, fields, summary)])
+    for case in study.cases:
+        specs = [r for r in study.runs if r.case == case.name
+                 and (r.set == "systole" or r.set.startswith("path-"))]
+        if len(specs) < 2:
+            continue
+        runs = []
+        for spec in specs:
+            f, s = read_fields(spec.dir(out)), _summary(spec.dir(out))
+            if f is not None and s is not None:
+                runs.append(((s.get("motion") or {}).get("ramp_steps"), f, s))
+        if runs:
+            rows.append((case.name, runs))
+    if not rows:
+        return None
+    plt = _plt()
+    project = _projection(view)
+    kinds = ("side", "top")
+    limits = {}
+    for kind in kinds:
+        pts = np.concatenate([project(f["X"] + f["u"], kind)[0] for _, runs in rows
+                              for _, f, _ in runs])
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        pad = 0.04 * (hi - lo).max()
+        limits[kind] = (lo - pad, hi + pad)
+    spans = {k: limits[k][1] - limits[k][0] for k in kinds}
+    width = 3.2
+    ncol = max(len(runs) for _, runs in rows)
+    heights = [spans[k][1] / spans[k][0] for _ in rows for k in kinds]
+    fig, axes = plt.subplots(len(heights), ncol, squeeze=False, dpi=110,
+                             figsize=(width * ncol + 1.2, 0.8 * width * sum(heights) + 0.5
+                                      * len(rows) + 1.0),
+                             gridspec_kw={"height_ratios": heights}, constrained_layout=True)
+    titles = titles or {}
+    for i, (case, runs) in enumerate(rows):
+        for j in range(ncol):
+            for m, kind in enumerate(kinds):
+                ax = axes[2 * i + m, j]
+                if j >= len(runs):
+                    ax.axis("off")
+                    continue
+                n, f, s = runs[j]
+                ax.set_aspect("equal")
+                ax.set_xlim(limits[kind][0][0], limits[kind][1][0])
+                ax.set_ylim(limits[kind][0][1], limits[kind][1][1])
+                ax.tick_params(labelsize=7)
+                if j:
+                    ax.set_yticklabels([])
+                if j == 0:
+                    ax.set_ylabel("\n".join(textwrap.wrap(titles.get(case, case), 22))
+                                  + ("\nside, mm" if kind == "side" else "\nfrom the atrium, mm"),
+                                  fontsize=8)
+                if m == 0:
+                    v = s.get("valve") or {}
+                    words = [f"ramp_steps {n}" + (" (its own)" if j == 0 else "")]
+                    if v.get("coaptation_length_mm") is not None:
+                        words.append(f"coaptation {v['coaptation_length_mm']:.2f} mm")
+                    if v.get("tenting_height_mm") is not None:
+                        words[-1] += f", tenting {v['tenting_height_mm']:.2f} mm"
+                    if not s.get("converged"):
+                        words.append("not converged: last state")
+                    ax.set_title("\n".join(words), fontsize=8,
+                                 color="k" if s.get("converged") else "red")
+                x = f["X"] + f["u"]
+                cells = f["cells"]
+                leaflet = np.where(f["region"] == 0, 0, 1)
+                p2, d = project(x, kind)
+                order = np.argsort(d[cells].mean(axis=1))
+                ax.add_collection(PolyCollection(p2[cells[order]],
+                                                 facecolors=LEAFLET_COLOURS[leaflet[order]],
+                                                 edgecolors="k", linewidths=0.1))
+    fig.suptitle("each repair closed along the solver's paths (--paths: solver.ramp_steps), "
+                 "one length scale; blue anterior, red posterior", fontsize=10)
     fig.savefig(path)
     plt.close(fig)
     return path

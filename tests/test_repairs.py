@@ -328,8 +328,9 @@ def test_repair_compare_ranges_over_the_solvers_paths(tmp_path):
     ties drawn tight over solver.ramp_steps): the clip is closed again with ramp_steps 10 and
     40 (each run's summary.json says so), the unrepaired valve, which has no motion, is not;
     the clip's csv range of each number is the smallest and largest of its three runs'
-    summaries, and its own value lies in it; the printed table shows the range; a run of
-    the same scene made here with ramp_steps 40 gives that run's coaptation."""
+    summaries, and its own value lies in it; the printed table shows the range, paths.png
+    the closures; a run of the same scene made here with ramp_steps 40 gives that run's
+    coaptation."""
     import csv
 
     from mvfem.compare import PATH_COLUMNS
@@ -363,6 +364,8 @@ def test_repair_compare_ranges_over_the_solvers_paths(tmp_path):
     line = next(ln for ln in r.stdout.splitlines() if ln.startswith("| clip "))
     assert line.count("[") == 4, line
     assert "gives each number's range" not in r.stdout  # (measured: no nudge)
+    data = (out / "paths.png").read_bytes()  # the clip's three closures
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000
     own = mvfem.solve(mvfem.load_scene(DEMO).with_changes(
         {"mesh.size": 5.0, "repair.clip": [{"at": 0.5}], "solver.ramp_steps": 40}),
         progress=False, write=False).summary
@@ -673,6 +676,7 @@ def test_repair_compare_end_to_end(tmp_path):
     for name in ("comparison.png", "shapes.png"):
         data = (out / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000, name
+    assert not (out / "paths.png").exists()  # no --paths
 
 
 def test_resected_valve_keeps_the_radial_coordinate_of_the_whole_valve():
