@@ -479,6 +479,31 @@ def _projection(view: dict | None):
     return project
 
 
+def _section(x: np.ndarray, cells: np.ndarray, view: dict | None):
+    """The valve cut by the long-axis plane through the middle (A2-P2: the plane of the
+    anterior direction and the axis through the centre): ``(segments, cell)``, each segment
+    two 2-D points (anterior coordinate, height along the axis, mm) where a triangle crosses
+    the plane, and the triangle it lies in."""
+    frame = view["frame"] if view else np.eye(3)
+    centre = view["centre"] if view else np.zeros(3)
+    ant, lat, axis = frame[0], frame[1], frame[2]
+    d = (x - centre) @ lat
+    tri = x[cells]                                   # (m, 3, 3)
+    dt = d[cells]                                    # (m, 3)
+    a, b = [0, 1, 2], [1, 2, 0]
+    da, db = dt[:, a], dt[:, b]
+    # the edges that cross, a node on the plane on its negative side (cut there): by the
+    # signs, not by da * db < 0, which underflows to 0 for nodes within 1e-160 mm of it
+    cut = (da > 0) != (db > 0)                       # (m, 3)
+    t = np.where(cut, da / np.where(cut, da - db, 1.0), 0.0)
+    pts = tri[:, a] + t[..., None] * (tri[:, b] - tri[:, a])
+    two = np.flatnonzero(cut.sum(axis=1) == 2)
+    first = np.argmax(cut[two], axis=1)
+    second = 2 - np.argmax(cut[two][:, ::-1], axis=1)
+    seg = np.stack([pts[two, first], pts[two, second]], axis=1) - centre   # (k, 2, 3)
+    return np.stack([seg @ ant, seg @ axis], axis=-1), two
+
+
 def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None = None,
             diastolic: float | None = None) -> Path | None:
     """The closed (and diastolic) valves side by side: one length scale per row (mm), one
@@ -585,13 +610,14 @@ def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None
 def _path_shapes(study, out: Path, view: dict | None, path: Path,
                  titles: dict | None = None) -> Path | None:
     """``--paths``: for each case closed along several paths, one row of its systolic
-    closures, its own path first, seen from the side (anterior right, atrium up) over the
-    same view from the atrium, all on one length scale (mm), each titled with its
+    closures, its own path first, cut by the long-axis plane through A2-P2 (anterior right,
+    atrium up: the fold, as an echo's long-axis view shows it) over the valve seen from the
+    atrium, all on one length scale (mm), each titled with its
     ``ramp_steps``, coaptation length and tenting height: the folds the paths end in. None
     when no case has path runs."""
     import textwrap
 
-    from matplotlib.collections import PolyCollection
+    from matplotlib.collections import LineCollection, PolyCollection
 
     from mvfem.figures import read_fields
 
@@ -612,11 +638,17 @@ def _path_shapes(study, out: Path, view: dict | None, path: Path,
         return None
     plt = _plt()
     project = _projection(view)
-    kinds = ("side", "top")
+    kinds = ("section", "top")
+    sections = {(case, j): _section(f["X"] + f["u"], f["cells"], view)
+                for case, runs in rows for j, (_, f, _) in enumerate(runs)}
     limits = {}
     for kind in kinds:
-        pts = np.concatenate([project(f["X"] + f["u"], kind)[0] for _, runs in rows
-                              for _, f, _ in runs])
+        if kind == "section":
+            pts = np.concatenate([seg.reshape(-1, 2) for seg, _ in sections.values()]
+                                 + [np.zeros((1, 2))])
+        else:
+            pts = np.concatenate([project(f["X"] + f["u"], kind)[0] for _, runs in rows
+                                  for _, f, _ in runs])
         lo, hi = pts.min(axis=0), pts.max(axis=0)
         pad = 0.04 * (hi - lo).max()
         limits[kind] = (lo - pad, hi + pad)
@@ -645,8 +677,8 @@ def _path_shapes(study, out: Path, view: dict | None, path: Path,
                     ax.set_yticklabels([])
                 if j == 0:
                     ax.set_ylabel("\n".join(textwrap.wrap(titles.get(case, case), 22))
-                                  + ("\nside, mm" if kind == "side" else "\nfrom the atrium, mm"),
-                                  fontsize=8)
+                                  + ("\nA2-P2 section, mm" if kind == "section"
+                                     else "\nfrom the atrium, mm"), fontsize=8)
                 if m == 0:
                     v = s.get("valve") or {}
                     words = [f"ramp_steps {n}" + (" (its own)" if j == 0 else "")]
@@ -658,16 +690,23 @@ def _path_shapes(study, out: Path, view: dict | None, path: Path,
                         words.append("not converged: last state")
                     ax.set_title("\n".join(words), fontsize=8,
                                  color="k" if s.get("converged") else "red")
+                leaflet = np.where(f["region"] == 0, 0, 1)
+                if kind == "section":
+                    seg, cell = sections[(case, j)]
+                    ax.add_collection(LineCollection(seg, colors=LEAFLET_COLOURS[leaflet[cell]],
+                                                     linewidths=2.0))
+                    continue
                 x = f["X"] + f["u"]
                 cells = f["cells"]
-                leaflet = np.where(f["region"] == 0, 0, 1)
                 p2, d = project(x, kind)
                 order = np.argsort(d[cells].mean(axis=1))
                 ax.add_collection(PolyCollection(p2[cells[order]],
                                                  facecolors=LEAFLET_COLOURS[leaflet[order]],
                                                  edgecolors="k", linewidths=0.1))
     fig.suptitle("each repair closed along the solver's paths (--paths: solver.ramp_steps), "
-                 "one length scale; blue anterior, red posterior", fontsize=10)
+                 "one length scale; blue anterior, red posterior\nthe long-axis section "
+                 "through A2-P2 (anterior right, atrium up) over the valve seen from the atrium",
+                 fontsize=10)
     fig.savefig(path)
     plt.close(fig)
     return path

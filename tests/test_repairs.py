@@ -405,6 +405,35 @@ def test_repair_compare_path_range_leaves_out_stopped_runs(tmp_path):
     assert b["path_ramp_steps"] is None and b["coaptation_length_min_mm"] is None
 
 
+@pytest.mark.parametrize("angle", [0.0, 0.5])
+def test_a2p2_section_of_a_flat_sheet(angle):
+    """paths.png's long-axis section: a flat 2 x 2 sheet at height 0.3, rows of nodes on the
+    cutting plane itself, turned by ``angle`` about the axis with its frame: the section is
+    the sheet's middle line, 2 long from -1 to 1 at height 0.3, whether the nodes on the
+    plane are cut there or not."""
+    from mvfem.compare import _section
+
+    n = 4
+    g = np.linspace(-1.0, 1.0, n + 1)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    pts = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, 0.3)])
+    idx = np.arange(X.size).reshape(n + 1, n + 1)
+    cells = np.array([c for i in range(n) for j in range(n) for c in
+                      ([idx[i, j], idx[i + 1, j], idx[i + 1, j + 1]],
+                       [idx[i, j], idx[i + 1, j + 1], idx[i, j + 1]])])
+    c, s_ = np.cos(angle), np.sin(angle)
+    R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    centre = np.array([3.0, -2.0, 1.0])
+    x = pts @ R.T + centre
+    view = {"frame": R.T, "centre": centre}   # rows: anterior, lateral, axis
+    seg, cell = _section(x, cells, view)
+    length = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1).sum()
+    assert length == pytest.approx(2.0, rel=1e-12)
+    assert np.allclose(seg[..., 1], 0.3, atol=1e-12)
+    assert seg[..., 0].min() == pytest.approx(-1.0) and seg[..., 0].max() == pytest.approx(1.0)
+    assert len(cell) == len(seg) and set(cell) <= set(range(len(cells)))
+
+
 # --------------------------------------------------------------------------- closures (slow)
 PATHOLOGICAL = SCENES / "valve_pathological.toml"
 REPAIRS = SCENES / "repairs"
