@@ -479,29 +479,19 @@ def _projection(view: dict | None):
     return project
 
 
-def _section(x: np.ndarray, cells: np.ndarray, view: dict | None):
-    """The valve cut by the long-axis plane through the middle (A2-P2: the plane of the
-    anterior direction and the axis through the centre): ``(segments, cell)``, each segment
-    two 2-D points (anterior coordinate, height along the axis, mm) where a triangle crosses
-    the plane, and the triangle it lies in."""
+def _section(x: np.ndarray, cells: np.ndarray, view: dict | None) -> np.ndarray:
+    """The trace of the triangles ``cells`` (into ``x``) in the long-axis plane through the
+    valve's centre spanned by its anterior direction and axis (A2-P2, where the metrics read
+    the coaptation length and the tenting: :func:`mvfem.metrics._section`): (k, 2, 2)
+    segments, each two points as (anterior coordinate, height along the axis), mm."""
+    from mvfem.metrics import _section as trace
+
     frame = view["frame"] if view else np.eye(3)
     centre = view["centre"] if view else np.zeros(3)
     ant, lat, axis = frame[0], frame[1], frame[2]
-    d = (x - centre) @ lat
-    tri = x[cells]                                   # (m, 3, 3)
-    dt = d[cells]                                    # (m, 3)
-    a, b = [0, 1, 2], [1, 2, 0]
-    da, db = dt[:, a], dt[:, b]
-    # the edges that cross, a node on the plane on its negative side (cut there): by the
-    # signs, not by da * db < 0, which underflows to 0 for nodes within 1e-160 mm of it
-    cut = (da > 0) != (db > 0)                       # (m, 3)
-    t = np.where(cut, da / np.where(cut, da - db, 1.0), 0.0)
-    pts = tri[:, a] + t[..., None] * (tri[:, b] - tri[:, a])
-    two = np.flatnonzero(cut.sum(axis=1) == 2)
-    first = np.argmax(cut[two], axis=1)
-    second = 2 - np.argmax(cut[two][:, ::-1], axis=1)
-    seg = np.stack([pts[two, first], pts[two, second]], axis=1) - centre   # (k, 2, 3)
-    return np.stack([seg @ ant, seg @ axis], axis=-1), two
+    seg, _ = trace(x, cells, np.zeros(len(x), dtype=bool), centre, lat)
+    seg = seg - centre
+    return np.stack([seg @ ant, seg @ axis], axis=-1)
 
 
 def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None = None,
@@ -639,12 +629,13 @@ def _path_shapes(study, out: Path, view: dict | None, path: Path,
     plt = _plt()
     project = _projection(view)
     kinds = ("section", "top")
-    sections = {(case, j): _section(f["X"] + f["u"], f["cells"], view)
-                for case, runs in rows for j, (_, f, _) in enumerate(runs)}
+    sections = {(case, j, side): _section(f["X"] + f["u"],
+                                          f["cells"][(f["region"] != 0) == side], view)
+                for case, runs in rows for j, (_, f, _) in enumerate(runs) for side in (0, 1)}
     limits = {}
     for kind in kinds:
         if kind == "section":
-            pts = np.concatenate([seg.reshape(-1, 2) for seg, _ in sections.values()]
+            pts = np.concatenate([seg.reshape(-1, 2) for seg in sections.values()]
                                  + [np.zeros((1, 2))])
         else:
             pts = np.concatenate([project(f["X"] + f["u"], kind)[0] for _, runs in rows
@@ -690,12 +681,13 @@ def _path_shapes(study, out: Path, view: dict | None, path: Path,
                         words.append("not converged: last state")
                     ax.set_title("\n".join(words), fontsize=8,
                                  color="k" if s.get("converged") else "red")
-                leaflet = np.where(f["region"] == 0, 0, 1)
                 if kind == "section":
-                    seg, cell = sections[(case, j)]
-                    ax.add_collection(LineCollection(seg, colors=LEAFLET_COLOURS[leaflet[cell]],
-                                                     linewidths=2.0))
+                    for side in (0, 1):
+                        ax.add_collection(LineCollection(sections[(case, j, side)],
+                                                         colors=LEAFLET_COLOURS[side],
+                                                         linewidths=2.0))
                     continue
+                leaflet = np.where(f["region"] == 0, 0, 1)
                 x = f["X"] + f["u"]
                 cells = f["cells"]
                 p2, d = project(x, kind)
