@@ -479,6 +479,24 @@ def _projection(view: dict | None):
     return project
 
 
+def _limits(pts: np.ndarray) -> tuple:
+    """(lower, upper) corners of the 2-D points ``pts``, padded by 4 % of the larger span."""
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    pad = 0.04 * (hi - lo).max()
+    return lo - pad, hi + pad
+
+
+def _panel(ax, limits: tuple, first: bool) -> None:
+    """A figure panel in mm on ``limits`` (equal aspect), y labels only in the ``first``
+    column."""
+    ax.set_aspect("equal")
+    ax.set_xlim(limits[0][0], limits[1][0])
+    ax.set_ylim(limits[0][1], limits[1][1])
+    ax.tick_params(labelsize=7)
+    if not first:
+        ax.set_yticklabels([])
+
+
 def _section(x: np.ndarray, cells: np.ndarray, view: dict | None) -> np.ndarray:
     """The trace of the triangles ``cells`` (into ``x``) in the long-axis plane through the
     valve's centre spanned by its anterior direction and axis (A2-P2, where the metrics read
@@ -535,10 +553,7 @@ def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None
     for phase, kind in kinds:
         pts = [project(f["X"] + f["u"], kind)[0] for (c, p), f in data.items() if p == phase]
         if pts:
-            pts = np.concatenate(pts)
-            lo_xy, hi_xy = pts.min(axis=0), pts.max(axis=0)
-            pad = 0.04 * (hi_xy - lo_xy).max()
-            limits.append((lo_xy - pad, hi_xy + pad))
+            limits.append(_limits(np.concatenate(pts)))
         else:
             limits.append((np.zeros(2), np.ones(2)))
     spans = [hi_ - lo_ for lo_, hi_ in limits]
@@ -553,12 +568,7 @@ def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None
     for j, case in enumerate(cases):
         for i, (phase, kind) in enumerate(kinds):
             ax = axes[i, j]
-            ax.set_aspect("equal")
-            ax.set_xlim(limits[i][0][0], limits[i][1][0])
-            ax.set_ylim(limits[i][0][1], limits[i][1][1])
-            ax.tick_params(labelsize=7)
-            if j:
-                ax.set_yticklabels([])
+            _panel(ax, limits[i], j == 0)
             f = data.get((case, phase))
             if i == 0:
                 ax.set_title("\n".join(textwrap.wrap(titles.get(case, case), 28)), fontsize=9)
@@ -640,9 +650,7 @@ def _path_shapes(study, out: Path, view: dict | None, path: Path,
         else:
             pts = np.concatenate([project(f["X"] + f["u"], kind)[0] for _, runs in rows
                                   for _, f, _ in runs])
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        pad = 0.04 * (hi - lo).max()
-        limits[kind] = (lo - pad, hi + pad)
+        limits[kind] = _limits(pts)
     spans = {k: limits[k][1] - limits[k][0] for k in kinds}
     width = 3.2
     ncol = max(len(runs) for _, runs in rows)
@@ -660,12 +668,7 @@ def _path_shapes(study, out: Path, view: dict | None, path: Path,
                     ax.axis("off")
                     continue
                 n, f, s = runs[j]
-                ax.set_aspect("equal")
-                ax.set_xlim(limits[kind][0][0], limits[kind][1][0])
-                ax.set_ylim(limits[kind][0][1], limits[kind][1][1])
-                ax.tick_params(labelsize=7)
-                if j:
-                    ax.set_yticklabels([])
+                _panel(ax, limits[kind], j == 0)
                 if j == 0:
                     ax.set_ylabel("\n".join(textwrap.wrap(titles.get(case, case), 22))
                                   + ("\nA2-P2 section, mm" if kind == "section"
