@@ -252,7 +252,7 @@ def _cmd_study(args) -> int:
 def _cmd_repair_compare(args) -> int:
     from pathlib import Path
 
-    from mvfem.compare import compare, parse_paths, table_text
+    from mvfem.compare import compare, parse_paths, parse_weights, table_text
     from mvfem.scene import parse_set_option
     from mvfem.units import PRESSURE, parse_quantity
 
@@ -264,18 +264,18 @@ def _cmd_repair_compare(args) -> int:
             raise InputError(f"--diastolic: {e}") from None
     changes = dict(parse_set_option(t) for t in (args.set or []))
     paths = parse_paths(args.paths) if args.paths is not None else None
+    weights = parse_weights(args.weights) if args.weights is not None else None
     out = Path(args.out) if args.out else Path("results") / f"{Path(args.scene).stem}-repairs"
     res = compare(args.scene, args.repairs, out, processes=args.processes, diastolic=diastolic,
-                  changes=changes, progress=True, paths=paths)
+                  changes=changes, progress=True, paths=paths, weights=weights)
     _say(table_text(res["rows"]))
-    if any(r.get("path_ramp_steps") for r in res["rows"]):
-        _say("[min, max]: over each case's converged systolic runs at solver.ramp_steps "
-             f"{', '.join(map(str, paths))} and at its own where that is another (cases with a "
-             "prescribed motion; comparison.csv path_ramp_steps lists them)")
-    elif res["moving"] and not paths:
+    if any(r.get("path_runs") for r in res["rows"]):
+        _say("[min, max]: over each case's converged systolic runs along the solver's paths "
+             "(comparison.csv path_runs names them)")
+    elif res["moving"] and not (paths or weights):
         _say(f"{', '.join(res['moving'])}: a prescribed motion (ring, ties); where the leaflets "
-             "can fold, the closure depends on the solver's path: --paths 10,20,30,40 gives "
-             "each number's range (README, Repairs)")
+             "can fold, the closure depends on the solver's path: --paths 10,20,30,40 "
+             "--weights 0.05,0.2,0.4 gives each number's range (README, Repairs)")
     _say(f"wrote {', '.join(str(p) for p in res['files'])}")
     return 0
 
@@ -391,6 +391,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="close each case with a prescribed motion again with each of these "
                     "solver.ramp_steps (e.g. 10,20,30,40): comparison.csv gains the range of "
                     "orifice, coaptation and tenting over the solver's paths")
+    rc.add_argument("--weights", metavar="W,W,...",
+                    help="close every case again with each of these solver.stabilisation, the "
+                    "pseudo-time start weight (default 0.1; e.g. 0.05,0.2,0.4): more paths "
+                    "for the same ranges")
     rc.set_defaults(func=_cmd_repair_compare)
     be = sub.add_parser("bench", help="speed against error on reference problems: bench.csv, "
                         "bench_pareto.png, bench.md")

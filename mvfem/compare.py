@@ -17,17 +17,19 @@ every run is one ``mvfem run`` process of the study runner (:mod:`mvfem.study`: 
   colour range for all) and from the side (the A2-P2 direction across), and the diastolic
   valves seen from the atrium.
 
-With ``paths`` (``--paths 10,20,30,40``), every case with a prescribed motion (a ring, a clip,
-sutures, moved papillary tips) is closed again at systole with each of those
-``solver.ramp_steps``: the same scene and pressure, only the path to the equilibrium differs.
-A ring that shrinks the annulus leaves the leaflets more tissue than the orifice needs, and
-the path picks among the folds they can rest in (README "Repairs", "Which closure"), so the
-csv gains, for the regurgitant orifice, both coaptation lengths and the tenting height, the
-smallest and largest value over the converged systolic runs (``PATH_COLUMNS``); the printed
-table shows them as ``[min, max]`` and comparison.png as a line over each bar, and
-``paths.png`` shows each such case's closures side by side (the folds). Differences between
-repairs within those ranges are not differences. A case without a prescribed motion
-has no ramp to vary: no extra runs, and its ranges stay empty.
+The solver's path can pick the closure: a ring that shrinks the annulus leaves the leaflets
+more tissue than the orifice needs, and they can rest in more than one fold (README
+"Repairs", "Which closure"). Two options close the cases again at systole along other paths,
+the same scene and pressure: ``paths`` (``--paths 10,20,30,40``), each case with a
+prescribed motion (a ring, a clip's or sutures' ties, moved papillary tips) with each of
+those ``solver.ramp_steps`` (a case without one has no ramp to vary); ``weights``
+(``--weights 0.05,0.2,0.4``), every case with each of those ``solver.stabilisation``, the
+pseudo-time start weight. The csv then gains, for the regurgitant orifice, both coaptation
+lengths and the tenting height, the smallest and largest value over each case's converged
+systolic runs (``PATH_COLUMNS``; ``path_runs`` names them); the printed table shows them as
+``[min, max]``, comparison.png as a line over each bar, and ``paths.png`` shows each case's
+closures side by side (the folds). Differences between repairs within those ranges are not
+differences.
 
 A repair file is a TOML table of scene keys merged into the scene: tables key by key, other
 values (numbers, strings, lists such as ``[[repair.clip]]`` or ``chordae.edit``) replace the
@@ -51,7 +53,7 @@ from mvfem.errors import InputError
 from mvfem.scene import read_toml
 
 __all__ = ["COLUMNS", "DIASTOLIC_PRESSURE", "PATH_COLUMNS", "PATH_KEYS", "compare",
-           "load_repair", "parse_paths"]
+           "load_repair", "parse_paths", "parse_weights"]
 
 #: the atrial-side pressure of the diastolic check (Pa): the valve opens; a clip shows its two
 #: orifices
@@ -63,7 +65,7 @@ COLUMNS = ("case", "title", "systole", "regurgitant_orifice_area_mm2",
            "chordae_force_max_N", "neochord_force_total_N", "tie_force_max_N", "diastole",
            "diastolic_orifice_area_mm2", "diastolic_orifice_count", "diastolic_orifice_areas_mm2",
            "run_dir")
-#: the numbers whose spread over the solver's paths ``--paths`` measures
+#: the numbers whose spread over the solver's paths ``--paths`` and ``--weights`` measure
 PATH_KEYS = ("regurgitant_orifice_area_mm2", "coaptation_length_mm", "coaptation_trace_length_mm",
              "tenting_height_mm")
 
@@ -74,10 +76,12 @@ def _bound(key: str, which: str) -> str:
     return f"{base}_{which}_{unit}"
 
 
-#: appended to ``COLUMNS`` (empty without ``--paths``): the ramp_steps of the case's converged
-#: systolic runs (its own first) and each PATH_KEY's smallest and largest value over them
-PATH_COLUMNS = ("path_ramp_steps",) + tuple(_bound(k, w) for k in PATH_KEYS
-                                             for w in ("min", "max"))
+#: appended to ``COLUMNS`` (empty without ``--paths`` or ``--weights``): the case's converged
+#: systolic runs (``own``, then ``solver.ramp_steps=N``, ``solver.stabilisation=W``) and each
+#: PATH_KEY's smallest and largest value over them
+PATH_COLUMNS = ("path_runs",) + tuple(_bound(k, w) for k in PATH_KEYS for w in ("min", "max"))
+#: the study's set names of the runs along other paths, and the scene key each varies
+VARIANTS = {"path-": "solver.ramp_steps", "weight-": "solver.stabilisation"}
 COLUMNS = COLUMNS + PATH_COLUMNS
 #: keys whose values are file names (resolved against the repair file's directory)
 _PATH_KEYS = ("mesh.file", "mesh.annulus", "mesh.papillary", "reference.file",
@@ -130,39 +134,62 @@ def _check_buildable(scene, label: str) -> dict:
     s = model.surface
     return {"frame": np.asarray(getattr(s, "frame", np.eye(3)), dtype=float),
             "centre": np.asarray(getattr(s, "centre", np.zeros(3)), dtype=float),
-            "motion": bool(model.motion), "ramp_steps": int(model.ramp_steps)}
+            "motion": bool(model.motion), "ramp_steps": int(model.ramp_steps),
+            "stabilisation": float(model.scene["solver"]["stabilisation"])}
 
 
-def parse_paths(text) -> list[int]:
-    """``"10,20,30,40"`` (or a list) -> the ``solver.ramp_steps`` values of ``--paths``,
-    in order, without repeats.
-
-    Raises:
-        InputError: one line, when a value is not a positive whole number.
-    """
+def _parse_values(text, option: str, convert, what: str) -> list:
+    """``"a,b,c"`` (or a list) -> the values, in order, without repeats; each ``convert``ed
+    and positive, else one line naming ``option``."""
     items = [t.strip() for t in text.split(",")] if isinstance(text, str) else list(text)
     out = []
     for t in items:
         if t == "":
             continue
         try:
-            n = int(t)
+            v = convert(t)
         except (TypeError, ValueError):
-            n = 0
-        if n < 1 or str(n) != str(t).strip():
-            raise InputError(f"--paths: {text!r}: expected solver.ramp_steps values, positive "
-                             f"whole numbers separated by commas (e.g. 10,20,30,40)")
-        if n not in out:
-            out.append(n)
+            v = None
+        if v is None or not v > 0 or not math.isfinite(v):
+            raise InputError(f"{option}: {text!r}: expected {what} separated by commas")
+        if v not in out:
+            out.append(v)
     if not out:
-        raise InputError(f"--paths: {text!r}: give at least one solver.ramp_steps value")
+        raise InputError(f"{option}: {text!r}: give at least one value")
     return out
+
+
+def _whole(t) -> int:
+    n = int(t)
+    if str(n) != str(t).strip():
+        raise ValueError(t)
+    return n
+
+
+def parse_paths(text) -> list[int]:
+    """``"10,20,30,40"`` (or a list) -> the ``solver.ramp_steps`` values of ``--paths``.
+
+    Raises:
+        InputError: one line, when a value is not a positive whole number.
+    """
+    return _parse_values(text, "--paths", _whole, "solver.ramp_steps values, positive whole "
+                         "numbers (e.g. 10,20,30,40),")
+
+
+def parse_weights(text) -> list[float]:
+    """``"0.05,0.2,0.4"`` (or a list) -> the ``solver.stabilisation`` values of ``--weights``.
+
+    Raises:
+        InputError: one line, when a value is not a positive number.
+    """
+    return _parse_values(text, "--weights", float, "solver.stabilisation values, positive "
+                         "numbers (e.g. 0.05,0.2,0.4),")
 
 
 def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: int | None = None,
             diastolic: float | None = DIASTOLIC_PRESSURE, changes: dict | None = None,
             progress: bool = True, timeout: float | None = None,
-            paths: list | None = None) -> dict:
+            paths: list | None = None, weights: list | None = None) -> dict:
     """Run the unrepaired scene and each repair; write the comparison (module docstring).
 
     Args:
@@ -175,6 +202,8 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
         changes: scene changes applied to every case first (``--set``).
         paths: ``solver.ramp_steps`` values (:func:`parse_paths`): each case with a prescribed
             motion is closed again with each one that is not its own (module docstring).
+        weights: ``solver.stabilisation`` values (:func:`parse_weights`): each case is closed
+            again with each one that is not its own.
 
     Returns:
         dict with ``rows`` (the table), ``files``, ``counts``, ``moving`` (the cases with a
@@ -197,6 +226,7 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
         raise InputError(f"--diastolic: expected a negative (atrial-side) pressure, got "
                          f"{diastolic:g} Pa")
     paths = parse_paths(paths) if paths else []
+    weights = parse_weights(weights) if weights else []
     cases = [("unrepaired", "unrepaired", {})]
     for r in repairs:
         name, title, ch = load_repair(r, base.with_changes(changes) if changes else base)
@@ -225,16 +255,16 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
             runs.append(RunSpec(case=name, set=phase, anterior_set=sets["anterior"],
                                 posterior_set=sets["posterior"], scene=str(scene_path),
                                 changes=all_changes, regions=regions, scene_sha256=digest))
-        if not built[name]["motion"]:
-            continue  # no ramp: every path is the same
-        for n in paths:
-            if n != built[name]["ramp_steps"]:
-                runs.append(RunSpec(case=name, set=f"path-{n}", anterior_set=sets["anterior"],
-                                    posterior_set=sets["posterior"], scene=str(scene_path),
-                                    changes={**changes, **ch, "solver.ramp_steps": n},
-                                    regions=regions, scene_sha256=digest))
+        own = built[name]
+        other = ([("path-", n) for n in paths if own["motion"] and n != own["ramp_steps"]]
+                 + [("weight-", w) for w in weights if w != own["stabilisation"]])
+        for prefix, v in other:  # (no motion: no ramp to vary)
+            runs.append(RunSpec(case=name, set=f"{prefix}{v:g}", anterior_set=sets["anterior"],
+                                posterior_set=sets["posterior"], scene=str(scene_path),
+                                changes={**changes, **ch, VARIANTS[prefix]: v},
+                                regions=regions, scene_sha256=digest))
     study = Study(title=f"repairs of {base['title'] or scene_path.name}", cases=study_cases,
-                  sets=list(dict.fromkeys(r.set for r in runs)),  # (path-N: where run)
+                  sets=list(dict.fromkeys(r.set for r in runs)),  # (variants: where run)
                   processes=processes or 1, timeout_s=timeout,
                   map_case="unrepaired", include_stopped=True, biaxial=False, runs=runs,
                   source=str(scene_path))
@@ -268,7 +298,7 @@ def _rows(study, out: Path, titles: dict) -> list[dict]:
     for case in study.cases:
         row = dict.fromkeys(COLUMNS)
         row.update(case=case.name, title=titles[case.name])
-        closed = []  # (ramp_steps, valve) of the converged systolic runs with a motion
+        closed = []  # (label, valve) of the converged systolic runs, its own first
         for spec in study.runs:
             if spec.case != case.name:
                 continue
@@ -277,10 +307,9 @@ def _rows(study, out: Path, titles: dict) -> list[dict]:
             status = "missing" if s is None else ("converged" if s.get("converged")
                                                   else "stopped")
             v = (s or {}).get("valve") or {}
-            if spec.set == "systole" or spec.set.startswith("path-"):
-                motion = (s or {}).get("motion")
-                if status == "converged" and motion:
-                    closed.append((motion.get("ramp_steps"), v))
+            if spec.set == "systole" or _variant(spec.set):
+                if status == "converged":
+                    closed.append((_label(spec.set), v))
                 if spec.set != "systole":
                     continue
             if spec.set == "systole":
@@ -310,18 +339,30 @@ def _rows(study, out: Path, titles: dict) -> list[dict]:
                 areas = v.get("orifice_areas_mm2")
                 row["diastolic_orifice_areas_mm2"] = (" ".join(f"{a:.1f}" for a in areas)
                                                      if areas else None)
-        if any(r.case == case.name and r.set.startswith("path-") for r in study.runs):
+        if any(r.case == case.name and _variant(r.set) for r in study.runs):
             _path_ranges(row, closed)
         rows.append(row)
     return rows
 
 
+def _variant(set_name: str) -> str | None:
+    """The prefix of a run along another path (``VARIANTS``), None for other runs."""
+    return next((p for p in VARIANTS if set_name.startswith(p)), None)
+
+
+def _label(set_name: str) -> str:
+    """``systole`` -> ``own``; ``path-10`` -> ``solver.ramp_steps=10``; ``weight-0.05`` ->
+    ``solver.stabilisation=0.05``."""
+    p = _variant(set_name)
+    return "own" if p is None else f"{VARIANTS[p]}={set_name[len(p):]}"
+
+
 def _path_ranges(row: dict, closed: list) -> None:
-    """Set ``row``'s PATH_COLUMNS from ``closed``, the (ramp_steps, valve summary) of the
-    case's converged systolic runs, its own first."""
+    """Set ``row``'s PATH_COLUMNS from ``closed``, the (label, valve summary) of the case's
+    converged systolic runs, its own first."""
     if not closed:
         return
-    row["path_ramp_steps"] = " ".join(str(n) for n, _ in closed)
+    row["path_runs"] = " ".join(label for label, _ in closed)
     for k in PATH_KEYS:
         vals = [float(v[k]) for _, v in closed if v.get(k) is not None
                 and math.isfinite(float(v[k]))]
@@ -412,7 +453,7 @@ def _bars(rows: list[dict], path: Path) -> Path | None:
     for ax, (key, label, scale) in zip(axes.ravel(), panels):
         vals = np.array([np.nan if r.get(key) is None else r[key] * scale for r in rows])
         ax.bar(range(len(rows)), np.nan_to_num(vals), color=colours)
-        # --paths: the range over the solver's paths, a line over the bar
+        # --paths, --weights: the range over the solver's paths, a line over the bar
         lo, hi = (np.array([np.nan if key not in PATH_KEYS or r.get(_bound(key, w)) is None
                             else r[_bound(key, w)] * scale for r in rows]) for w in ("min", "max"))
         ranged = np.isfinite(lo)
@@ -445,10 +486,11 @@ def _bars(rows: list[dict], path: Path) -> Path | None:
                         ha="center", va="bottom", fontsize=7,
                         color="red" if r.get(status_key) not in (None, "converged") else "k")
     legend = "; ".join(f"{r['case']} = {r['title']}" for r in rows if r["title"] != r["case"])
-    paths = any(r.get("path_ramp_steps") for r in rows)
+    paths = any(r.get("path_runs") for r in rows)
     fig.suptitle("repairs compared: systole at the scene's pressure; diastolic orifice under "
                  "an atrial-side pressure" + ("; lines over the bars: the range over the "
-                                              "solver's paths (--paths)" if paths else "")
+                                              "solver's paths (--paths, --weights)" if paths
+                                              else "")
                  + (f"\n{legend}" if legend else ""), fontsize=10)
     fig.tight_layout()
     fig.savefig(path)
@@ -523,7 +565,7 @@ def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None
     from mvfem.figures import read_fields
 
     plt = _plt()
-    phases = [p for p in study.sets if p in ("systole", "diastole")]  # (not --paths' runs)
+    phases = [p for p in study.sets if p in ("systole", "diastole")]  # (not other paths')
     cases = [c.name for c in study.cases]
     titles = titles or {}
     data = {}
@@ -609,29 +651,29 @@ def _shapes(study, out: Path, view: dict | None, path: Path, titles: dict | None
 
 def _path_shapes(study, out: Path, view: dict | None, path: Path,
                  titles: dict | None = None) -> Path | None:
-    """``--paths``: for each case closed along several paths, one row of its systolic
-    closures, its own path first, cut by the long-axis plane through A2-P2 (anterior right,
-    atrium up: the fold, as an echo's long-axis view shows it) over the valve seen from the
-    atrium, all on one length scale (mm), each titled with its
-    ``ramp_steps``, coaptation length and tenting height: the folds the paths end in. None
-    when no case has path runs."""
+    """``--paths``, ``--weights``: for each case closed along several paths, one row of its
+    systolic closures, its own path first, cut by the long-axis plane through A2-P2
+    (anterior right, atrium up: the fold, as an echo's long-axis view shows it) over the
+    valve seen from the atrium, all on one length scale (mm), each titled with its path,
+    coaptation length and tenting height: the folds the paths end in. None when no case has
+    runs along other paths."""
     import textwrap
 
     from matplotlib.collections import LineCollection, PolyCollection
 
     from mvfem.figures import read_fields
 
-    rows = []   # (case, [(ramp_steps, fields, summary)])
+    rows = []   # (case, [(label, fields, summary)])
     for case in study.cases:
         specs = [r for r in study.runs if r.case == case.name
-                 and (r.set == "systole" or r.set.startswith("path-"))]
+                 and (r.set == "systole" or _variant(r.set))]
         if len(specs) < 2:
             continue
         runs = []
         for spec in specs:
             f, s = read_fields(spec.dir(out)), _summary(spec.dir(out))
             if f is not None and s is not None:
-                runs.append(((s.get("motion") or {}).get("ramp_steps"), f, s))
+                runs.append((_label(spec.set), f, s))
         if runs:
             rows.append((case.name, runs))
     if not rows:
@@ -675,7 +717,7 @@ def _path_shapes(study, out: Path, view: dict | None, path: Path,
                                      else "\nfrom the atrium, mm"), fontsize=8)
                 if m == 0:
                     v = s.get("valve") or {}
-                    words = [f"ramp_steps {n}" + (" (its own)" if j == 0 else "")]
+                    words = ["its own settings" if n == "own" else n.replace("solver.", "")]
                     if v.get("coaptation_length_mm") is not None:
                         words.append(f"coaptation {v['coaptation_length_mm']:.2f} mm")
                     if v.get("tenting_height_mm") is not None:
@@ -698,7 +740,8 @@ def _path_shapes(study, out: Path, view: dict | None, path: Path,
                 ax.add_collection(PolyCollection(p2[cells[order]],
                                                  facecolors=LEAFLET_COLOURS[leaflet[order]],
                                                  edgecolors="k", linewidths=0.1))
-    fig.suptitle("each repair closed along the solver's paths (--paths: solver.ramp_steps), "
+    fig.suptitle("each case closed along the solver's paths (--paths: solver.ramp_steps, "
+                 "--weights: solver.stabilisation), "
                  "one length scale; blue anterior, red posterior\nthe long-axis section "
                  "through A2-P2 (anterior right, atrium up) over the valve seen from the atrium",
                  fontsize=10)

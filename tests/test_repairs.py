@@ -308,29 +308,34 @@ def test_repair_compare_names_the_repair_file(tmp_path):
     assert r.returncode == 2 and str(typo) in r.stderr and "rnig" in r.stderr, r.stderr
 
 
-@pytest.mark.parametrize("paths", ["0", "10,x", "2.5", ","])
-def test_repair_compare_refuses_bad_paths(paths, tmp_path):
-    """--paths takes positive whole numbers (solver.ramp_steps): anything else is one line
-    naming --paths, exit 2, and no run started."""
+@pytest.mark.parametrize("option, value", [("--paths", "0"), ("--paths", "10,x"),
+                                           ("--paths", "2.5"), ("--paths", ","),
+                                           ("--weights", "0"), ("--weights", "-0.1"),
+                                           ("--weights", "nan"), ("--weights", "0.1,y")])
+def test_repair_compare_refuses_bad_paths(option, value, tmp_path):
+    """--paths takes positive whole numbers (solver.ramp_steps), --weights positive numbers
+    (solver.stabilisation): anything else is one line naming the option, exit 2, and no run
+    started."""
     good = tmp_path / "clip.toml"
     good.write_text('[[repair.clip]]\nat = 0.5\n')
     out = tmp_path / "cmp"
     r = _cli("repair-compare", str(DEMO), "--repairs", str(good), "--out", str(out),
-             "--paths", paths, "--set", "mesh.size=5.0")
+             f"{option}={value}", "--set", "mesh.size=5.0")
     assert r.returncode == 2, r.stderr[-2000:]
     lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("mvfem: error: --paths"), r.stderr
+    assert len(lines) == 1 and lines[0].startswith(f"mvfem: error: {option}"), r.stderr
     assert not (out / "runs").exists()
 
 
 def test_repair_compare_ranges_over_the_solvers_paths(tmp_path):
-    """`repair-compare --paths 10,40` on the 5 mm demo with a clip (a prescribed motion: its
-    ties drawn tight over solver.ramp_steps): the clip is closed again with ramp_steps 10 and
-    40 (each run's summary.json says so), the unrepaired valve, which has no motion, is not;
-    the clip's csv range of each number is the smallest and largest of its three runs'
-    summaries, and its own value lies in it; the printed table shows the range, paths.png
-    the closures; a run of the same scene made here with ramp_steps 40 gives that run's
-    coaptation."""
+    """`repair-compare --paths 10,40 --weights 0.05` on the 5 mm demo with a clip (a
+    prescribed motion: its ties drawn tight over solver.ramp_steps): the clip is closed again
+    with ramp_steps 10 and 40 (each run's summary.json says so) and with the start weight
+    0.05; the unrepaired valve, which has no motion, only with the weight; each case's csv
+    range of each number is the smallest and largest of its runs' summaries, and its own
+    value lies in it; the printed table shows the ranges, paths.png the closures; runs of
+    the same scenes made here with ramp_steps 40 and with the weight 0.05 give those runs'
+    coaptation and steps (and the weight's run is not the scene's own)."""
     import csv
 
     from mvfem.compare import PATH_COLUMNS
@@ -339,38 +344,49 @@ def test_repair_compare_ranges_over_the_solvers_paths(tmp_path):
     clip.write_text('title = "clip"\n[[repair.clip]]\nat = 0.5\n')
     out = tmp_path / "cmp"
     r = _cli("repair-compare", str(DEMO), "--repairs", str(clip), "--out", str(out),
-             "--paths", "10,40", "--no-diastole", "--set", "mesh.size=5.0")
+             "--paths", "10,40", "--weights", "0.05", "--no-diastole", "--set", "mesh.size=5.0")
     assert r.returncode == 0, r.stderr[-3000:]
-    assert sorted(p.name for p in (out / "runs" / "unrepaired").iterdir()) == ["systole"]
-    assert sorted(p.name for p in (out / "runs" / "clip").iterdir()) == \
-        ["path-10", "path-40", "systole"]
+    dirs = {"unrepaired": ["systole", "weight-0.05"],
+            "clip": ["path-10", "path-40", "systole", "weight-0.05"]}
+    for case, names in dirs.items():
+        assert sorted(p.name for p in (out / "runs" / case).iterdir()) == names
     rows = {row["case"]: row for row in csv.DictReader((out / "comparison.csv").open())}
-    assert all(rows["unrepaired"][c] == "" for c in PATH_COLUMNS)
-    summaries = {d: json.loads((out / "runs" / "clip" / d / "summary.json").read_text())
-                 for d in ("systole", "path-10", "path-40")}
+    summaries = {(c, d): json.loads((out / "runs" / c / d / "summary.json").read_text())
+                 for c, names in dirs.items() for d in names}
     assert all(s["converged"] for s in summaries.values())
-    assert [summaries[d]["motion"]["ramp_steps"] for d in ("systole", "path-10", "path-40")] \
-        == [20, 10, 40]
-    row = rows["clip"]
-    assert row["path_ramp_steps"] == "20 10 40"
-    for key in ("coaptation_length_mm", "coaptation_trace_length_mm", "tenting_height_mm",
-                "regurgitant_orifice_area_mm2"):
-        vals = [s["valve"][key] for s in summaries.values()]
-        base, unit = key.rsplit("_", 1)
-        lo, hi = float(row[f"{base}_min_{unit}"]), float(row[f"{base}_max_{unit}"])
-        assert lo == pytest.approx(min(vals), rel=1e-5, abs=1e-9), key
-        assert hi == pytest.approx(max(vals), rel=1e-5, abs=1e-9), key
-        assert lo <= float(row[key]) <= hi, key
-    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("| clip "))
-    assert line.count("[") == 4, line
+    assert [summaries[("clip", d)]["motion"]["ramp_steps"]
+            for d in ("systole", "path-10", "path-40", "weight-0.05")] == [20, 10, 40, 20]
+    assert rows["clip"]["path_runs"] == ("own solver.ramp_steps=10 solver.ramp_steps=40 "
+                                         "solver.stabilisation=0.05")
+    assert rows["unrepaired"]["path_runs"] == "own solver.stabilisation=0.05"
+    for case, names in dirs.items():
+        for key in ("coaptation_length_mm", "coaptation_trace_length_mm", "tenting_height_mm",
+                    "regurgitant_orifice_area_mm2"):
+            vals = [summaries[(case, d)]["valve"][key] for d in names]
+            base, unit = key.rsplit("_", 1)
+            row = rows[case]
+            lo, hi = float(row[f"{base}_min_{unit}"]), float(row[f"{base}_max_{unit}"])
+            assert lo == pytest.approx(min(vals), rel=1e-5, abs=1e-9), (case, key)
+            assert hi == pytest.approx(max(vals), rel=1e-5, abs=1e-9), (case, key)
+            assert lo <= float(row[key]) <= hi, (case, key)
+    assert set(PATH_COLUMNS) <= set(rows["clip"])
+    for case in dirs:
+        line = next(ln for ln in r.stdout.splitlines() if ln.startswith(f"| {case} "))
+        assert line.count("[") == 4, line
     assert "gives each number's range" not in r.stdout  # (measured: no nudge)
-    data = (out / "paths.png").read_bytes()  # the clip's three closures
+    data = (out / "paths.png").read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000
-    own = mvfem.solve(mvfem.load_scene(DEMO).with_changes(
-        {"mesh.size": 5.0, "repair.clip": [{"at": 0.5}], "solver.ramp_steps": 40}),
-        progress=False, write=False).summary
-    assert own["valve"]["coaptation_length_mm"] == pytest.approx(
-        summaries["path-40"]["valve"]["coaptation_length_mm"], rel=1e-6)
+    base = mvfem.load_scene(DEMO).with_changes({"mesh.size": 5.0})
+    for case, changes, d in [("clip", {"repair.clip": [{"at": 0.5}], "solver.ramp_steps": 40},
+                              "path-40"),
+                             ("unrepaired", {"solver.stabilisation": 0.05}, "weight-0.05")]:
+        mine = mvfem.solve(base.with_changes(changes), progress=False, write=False).summary
+        theirs = summaries[(case, d)]
+        assert mine["newton_iterations"] == theirs["newton_iterations"], (case, d)
+        assert mine["valve"]["coaptation_length_mm"] == pytest.approx(
+            theirs["valve"]["coaptation_length_mm"], rel=1e-6), (case, d)
+    assert summaries[("unrepaired", "weight-0.05")]["newton_iterations"] != \
+        summaries[("unrepaired", "systole")]["newton_iterations"]  # (another path indeed)
 
 
 def test_repair_compare_path_range_leaves_out_stopped_runs(tmp_path):
@@ -384,10 +400,10 @@ def test_repair_compare_path_range_leaves_out_stopped_runs(tmp_path):
                        changes={}, regions=[])
 
     runs = [spec("a", "systole"), spec("a", "diastole"), spec("a", "path-10"),
-            spec("a", "path-30"), spec("a", "path-40"), spec("b", "systole")]
+            spec("a", "path-30"), spec("a", "weight-0.4"), spec("b", "systole")]
     values = {("a", "systole"): (True, 20, 5.0), ("a", "diastole"): (True, 20, 99.0),
               ("a", "path-10"): (True, 10, 7.5), ("a", "path-30"): (False, 30, 1.0),
-              ("a", "path-40"): (True, 40, 6.0), ("b", "systole"): (True, 20, 3.0)}
+              ("a", "weight-0.4"): (True, 20, 6.0), ("b", "systole"): (True, 20, 3.0)}
     for r in runs:
         ok, n, c = values[(r.case, r.set)]
         r.dir(tmp_path).mkdir(parents=True)
@@ -397,12 +413,12 @@ def test_repair_compare_path_range_leaves_out_stopped_runs(tmp_path):
     study = Study(title="", cases=[Case("a", "x"), Case("b", "x")], sets=[], processes=1,
                   timeout_s=None, map_case="a", include_stopped=True, biaxial=False, runs=runs)
     a, b = _rows(study, tmp_path, {"a": "a", "b": "b"})
-    assert a["path_ramp_steps"] == "20 10 40"
+    assert a["path_runs"] == "own solver.ramp_steps=10 solver.stabilisation=0.4"
     assert (a["coaptation_length_min_mm"], a["coaptation_length_max_mm"]) == (5.0, 7.5)
     assert (a["tenting_height_min_mm"], a["tenting_height_max_mm"]) == (-7.5, -5.0)
     assert a["regurgitant_orifice_area_min_mm2"] is None  # not in the summaries
     assert a["coaptation_length_mm"] == 5.0
-    assert b["path_ramp_steps"] is None and b["coaptation_length_min_mm"] is None
+    assert b["path_runs"] is None and b["coaptation_length_min_mm"] is None
 
 
 @pytest.mark.parametrize("angle", [0.0, 0.5])
