@@ -259,7 +259,7 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
         other = ([("path-", n) for n in paths if own["motion"] and n != own["ramp_steps"]]
                  + [("weight-", w) for w in weights if w != own["stabilisation"]])
         for prefix, v in other:  # (no motion: no ramp to vary)
-            runs.append(RunSpec(case=name, set=f"{prefix}{v:g}", anterior_set=sets["anterior"],
+            runs.append(RunSpec(case=name, set=f"{prefix}{v}", anterior_set=sets["anterior"],
                                 posterior_set=sets["posterior"], scene=str(scene_path),
                                 changes={**changes, **ch, VARIANTS[prefix]: v},
                                 regions=regions, scene_sha256=digest))
@@ -270,9 +270,9 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
                   source=str(scene_path))
     out = prepare_out(out).resolve()
     res = run_study(study, out, processes=processes, progress=progress, report=False)
-    rows = _rows(study, out, {c[0]: c[1] for c in cases})
-    files = [_write_csv(rows, out / "comparison.csv")]
     titles = {c[0]: c[1] for c in cases}
+    rows = _rows(study, out, titles)
+    files = [_write_csv(rows, out / "comparison.csv")]
     files += [p for p in (_bars(rows, out / "comparison.png"),
                           _shapes(study, out, view, out / "shapes.png", titles, diastolic),
                           _path_shapes(study, out, view, out / "paths.png", titles))
