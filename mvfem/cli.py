@@ -392,9 +392,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "solver.ramp_steps (e.g. 10,20,30,40): comparison.csv gains the range of "
                     "orifice, coaptation and tenting over the solver's paths")
     rc.add_argument("--weights", metavar="W,W,...",
-                    help="close every case again with each of these solver.stabilisation, the "
-                    "pseudo-time start weight (default 0.1; e.g. 0.05,0.2,0.4): more paths "
-                    "for the same ranges")
+                    help="close every case (with a prescribed motion or not) again with each "
+                    "of these solver.stabilisation, the pseudo-time start weight (default 0.1; "
+                    "e.g. 0.05,0.2,0.4): more paths in the same ranges")
     rc.set_defaults(func=_cmd_repair_compare)
     be = sub.add_parser("bench", help="speed against error on reference problems: bench.csv, "
                         "bench_pareto.png, bench.md")
