@@ -13,7 +13,9 @@ the same in every run: only the path to the equilibrium differs. A ring that shr
 annulus leaves the leaflets more tissue than the orifice needs, and they can rest in more than
 one fold: README "Repairs", "Which closure: the path picks among equilibria" (session 42),
 whose table this script makes. Differences between repairs smaller than the spread are not
-differences.
+differences. `mvfem repair-compare ... --paths 10,20,30,40 --weights 0.05,0.2,0.4` makes such
+runs for every case of a comparison and reports each number's range (session 46); this
+script also varies ``solver.motion``.
 
 Bad input (a missing scene or repair file, a bad key, a list that is not numbers, an
 ``--out`` that exists) is one line and exit code 2, before any run.
