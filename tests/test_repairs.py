@@ -312,10 +312,20 @@ def test_repair_compare_names_the_repair_file(tmp_path):
                                            ("--paths", "2.5"), ("--paths", ","),
                                            ("--weights", "0"), ("--weights", "-0.1"),
                                            ("--weights", "nan"), ("--weights", "0.1,y")])
-def test_repair_compare_refuses_bad_paths(option, value, tmp_path):
+def test_bad_paths_and_weights_are_input_errors(option, value):
     """--paths takes positive whole numbers (solver.ramp_steps), --weights positive numbers
-    (solver.stabilisation): anything else is one line naming the option, exit 2, and no run
-    started."""
+    (solver.stabilisation): anything else is an InputError naming the option."""
+    from mvfem.compare import parse_paths, parse_weights
+
+    parse = parse_paths if option == "--paths" else parse_weights
+    with pytest.raises(InputError, match=f"^{option}: "):
+        parse(value)
+
+
+@pytest.mark.parametrize("option, value", [("--paths", "2.5"), ("--weights", "0")])
+def test_repair_compare_refuses_bad_paths(option, value, tmp_path):
+    """Through the CLI, a bad --paths or --weights is one line naming the option, exit 2,
+    and no run started."""
     good = tmp_path / "clip.toml"
     good.write_text('[[repair.clip]]\nat = 0.5\n')
     out = tmp_path / "cmp"
