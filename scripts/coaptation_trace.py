@@ -27,6 +27,7 @@ from mpi4py import MPI
 import mvfem
 import mvfem.run as run_mod
 from mvfem.errors import InputError
+from mvfem.scriptargs import errors, existing_out
 from mvfem.scene import load_scene
 
 DEMO = Path(mvfem.__file__).parent / "data" / "demo.toml"
@@ -80,18 +81,13 @@ def main(argv=None) -> int:
     p.add_argument("--pressure", type=float, default=16.0, help="kPa")
     p.add_argument("--out", default=None, help="write the rows as JSON here")
     a = p.parse_args(argv)
-    root = MPI.COMM_WORLD.rank == 0
-
-    def error(msg: str) -> int:
-        if root:
-            print(f"coaptation_trace: {msg}", file=sys.stderr)
-        return 2
+    root, error = errors("coaptation_trace")
     try:
         meshes = parse_meshes(a.meshes)
     except ValueError:
         return error(f"--meshes {a.meshes!r}: not sizes in mm with optional r<refine>")
-    if a.out is not None and MPI.COMM_WORLD.bcast(Path(a.out).exists() if root else None):
-        return error(f"--out {a.out}: exists; choose another name")
+    if msg := existing_out(a.out):
+        return error(msg)
     rows = []
     for size, refine in meshes:
         try:

@@ -34,11 +34,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-from mpi4py import MPI
 
 import mvfem
 import mvfem.run as run_mod
 from mvfem.errors import InputError
+from mvfem.scriptargs import add_demo_levels, errors, existing_out
 from mvfem.scene import load_scene
 from mvfem.solver import PseudoTransient
 
@@ -177,26 +177,19 @@ def table(rec: dict, history: bool) -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--refine", type=int, default=2, help="times the demo's mesh is refined")
-    p.add_argument("--size", type=float, default=2.0, help="the demo's mesh size, mm")
-    p.add_argument("--pressures", default="16", help="kPa, comma-separated")
+    add_demo_levels(p)
     p.add_argument("--history", action="store_true", help="the finest level's steps too")
     p.add_argument("--hot", action="store_true",
                    help="where the residual is at each accepted step (see above)")
     p.add_argument("--out", default=None, help="write the records as JSON here")
     a = p.parse_args(argv)
-    root = MPI.COMM_WORLD.rank == 0   # (under mpirun: rank 0 prints and writes)
-
-    def error(msg: str) -> int:
-        if root:
-            print(f"level_costs: {msg}", file=sys.stderr)
-        return 2
+    root, error = errors("level_costs")   # (under mpirun: rank 0 prints and writes)
     try:
         pressures = [float(v) for v in a.pressures.split(",")]
     except ValueError:
         return error(f"--pressures {a.pressures!r}: not numbers")
-    if a.out is not None and MPI.COMM_WORLD.bcast(Path(a.out).exists() if root else None):
-        return error(f"--out {a.out}: exists; choose another name")
+    if msg := existing_out(a.out):
+        return error(msg)
     global HOT
     HOT = a.hot
     run_mod.PseudoTransient = Recorded

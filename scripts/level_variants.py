@@ -35,11 +35,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-from mpi4py import MPI
 
 import mvfem
 import mvfem.run as run_mod
 from mvfem.errors import InputError
+from mvfem.scriptargs import add_demo_levels, errors, existing_out
 from mvfem.solver import PseudoTransient
 
 DEMO = Path(mvfem.__file__).parent / "data" / "demo.toml"
@@ -196,17 +196,10 @@ def totals(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("variants", nargs="+", help="NAME:FIELD=VALUE,... (NAME: alone: as it is)")
-    p.add_argument("--refine", type=int, default=2, help="times the demo's mesh is refined")
-    p.add_argument("--size", type=float, default=2.0, help="the demo's mesh size, mm")
-    p.add_argument("--pressures", default="16", help="kPa, comma-separated")
+    add_demo_levels(p)
     p.add_argument("--out", default=None, help="write the rows as JSON here")
     a = p.parse_args(argv)
-    root = MPI.COMM_WORLD.rank == 0
-
-    def error(msg: str) -> int:
-        if root:
-            print(f"level_variants: {msg}", file=sys.stderr)
-        return 2
+    root, error = errors("level_variants")
     try:
         pressures = [float(v) for v in a.pressures.split(",")]
     except ValueError:
@@ -220,8 +213,8 @@ def main(argv=None) -> int:
     names = [n for n, _ in variants]
     if len(set(names)) != len(names):
         return error(f"variant names repeat: {', '.join(names)}")
-    if a.out is not None and MPI.COMM_WORLD.bcast(Path(a.out).exists() if root else None):
-        return error(f"--out {a.out}: exists; choose another name")
+    if msg := existing_out(a.out):
+        return error(msg)
     _Finest.variants, _Finest.rows = variants, []
     for pressure in pressures:
         done = len(_Finest.rows)

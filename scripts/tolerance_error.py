@@ -28,10 +28,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from mpi4py import MPI
 
 import mvfem
 from mvfem.errors import InputError
+from mvfem.scriptargs import add_demo_levels, errors, existing_out
 
 DEMO = Path(mvfem.__file__).parent / "data" / "demo.toml"
 
@@ -80,19 +80,12 @@ def table(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--refine", type=int, default=2, help="times the demo's mesh is refined")
-    p.add_argument("--size", type=float, default=2.0, help="the demo's mesh size, mm")
-    p.add_argument("--pressures", default="16", help="kPa, comma-separated")
+    add_demo_levels(p)
     p.add_argument("--tolerances", default="1e-4,1e-5", help="comma-separated, each looser "
                    "than the default 1e-8")
     p.add_argument("--out", default=None, help="write the rows as JSON here")
     a = p.parse_args(argv)
-    root = MPI.COMM_WORLD.rank == 0
-
-    def error(msg: str) -> int:
-        if root:
-            print(f"tolerance_error: {msg}", file=sys.stderr)
-        return 2
+    root, error = errors("tolerance_error")
     try:
         pressures = [float(v) for v in a.pressures.split(",")]
         tolerances = [float(v) for v in a.tolerances.split(",")]
@@ -100,8 +93,8 @@ def main(argv=None) -> int:
         return error(f"--pressures {a.pressures!r} / --tolerances {a.tolerances!r}: not numbers")
     if not all(t > 0 for t in tolerances):
         return error(f"--tolerances {a.tolerances!r}: must be positive")
-    if a.out is not None and MPI.COMM_WORLD.bcast(Path(a.out).exists() if root else None):
-        return error(f"--out {a.out}: exists; choose another name")
+    if msg := existing_out(a.out):
+        return error(msg)
     rows = []
     for pressure in pressures:
         try:
