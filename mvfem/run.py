@@ -530,10 +530,26 @@ def _coarse_size(scene: Scene):
 
 def _nested(scene: Scene, model: Model) -> bool:
     """Whether ``scene`` is closed from the closure of its next coarser nested level: a refined
-    valve (``mesh.refine``) with ``solver.nested``, solved in pseudo-time from the open state
-    (a prescribed motion ramps from the open state: solved on the fine mesh alone)."""
+    valve (``mesh.refine``) with ``solver.nested``, solved in pseudo-time. A prescribed motion
+    (a ring, ties, moved tips) ramps on the coarsest level, from the open state; each finer
+    level starts from the closure below with the motion complete (:func:`_coarse_start`)."""
     return bool(scene["mesh"]["refine"] and scene["solver"]["nested"]
-                and _method(model) == "pseudo-time" and not model.motion)
+                and _method(model) == "pseudo-time")
+
+
+def _dirichlet_values(model: Model) -> np.ndarray | None:
+    """The displacements the Dirichlet conditions prescribe, at every node of the nodal view
+    (rank 0; zero at free dofs; None elsewhere). Collective."""
+    from dolfinx.fem import petsc as fpetsc
+
+    if model.view is None:
+        return None
+    w = model.u.vector.duplicate()
+    w.set(0.0)
+    fpetsc.set_bc(w, model.bcs)
+    values = model.view.gather(w.array_r)
+    w.destroy()
+    return values
 
 
 def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
@@ -541,7 +557,9 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
     (mvfem/sequence.py): the mesh refined once less (``mesh.refine``, nested levels), else the
     mesh of ``solver.coarse_start``. What happened, for summary.json ``coarse_start``. The
     coarser levels get their method's default ``max_steps`` and ``tolerance``, whatever the
-    scene sets."""
+    scene sets. A nested level with a prescribed motion (a ring, ties, moved tips) takes the
+    motion complete, its own Dirichlet values at the clamped nodes (``motion_complete``);
+    where the closure below is not used, the motion ramps from the open state as usual."""
     import copy
 
     from mvfem.scene import _make
@@ -598,10 +616,23 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
             "cells": res.summary["cells"], "wall_time_s": time.perf_counter() - t0}
     if res.summary.get("coarse_start"):  # its own coarser start, included in wall_time_s
         info["coarser"] = res.summary["coarse_start"]
+    # a prescribed motion is complete in the closure below: this level starts with it complete
+    # (its Dirichlet values, tips and ties), or ramps it from the open state if that start is
+    # not used
+    moving = nested and model.ramp is not None
     if not res.converged:
         info.update(used=False, reason="the coarse solve stopped short")
     else:
-        info.update(transfer(res.model, model, sweeps=UNFOLD_SWEEPS if nested else 0))
+        clamp = None
+        if moving:
+            model.ramp(1.0)
+            clamp = _dirichlet_values(model)
+        info.update(transfer(res.model, model, sweeps=UNFOLD_SWEEPS if nested else 0,
+                             clamp=clamp))
+        if moving and not info["used"]:
+            model.ramp(0.0)
+    if moving:
+        info["motion_complete"] = bool(info["used"])
     if comm.rank == 0:
         fine = f"{model.mesh.topology.index_map(2).size_global} cells" if nested \
             else f"the {size:g} mm mesh"
@@ -727,15 +758,15 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     ptc = hook = cap_raised_at = None
     if method == "pseudo-time":
         model.pressure.value = model.p_target
+        # a sequenced level's Newton's regime begins 1e4 x above the usual start's weight: the
+        # symmetric tangent's cheaper factorisation down to that (SYMMETRIC_ABOVE)
+        sequenced = seq is not None and seq["used"]
         motion = _motion_ramp(model)
-        if motion is not None:
+        if motion is not None and not sequenced:  # (a nested level's is complete: above)
             hook = _AdaptiveRamp(model, motion, lambda: ptc.history)
             model.exponent_cap.value = MOTION_CAP
         on_step = _PseudoTimeProgress(load_norm, progress)
         k0 = model.stabiliser_scale
-        # a sequenced level's Newton's regime begins 1e4 x above the usual start's weight: the
-        # symmetric tangent's cheaper factorisation down to that (SYMMETRIC_ABOVE)
-        sequenced = seq is not None and seq["used"]
         sym_above = SYMMETRIC_ABOVE * model.stabiliser_scale
         if sequenced:
             from mvfem.sequence import START_CAP, START_WEIGHT
@@ -850,6 +881,10 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
             summary["motion"]["completed_at_step"] = hook.completed_at
             # the step after which the laws' exponent was no longer capped (MOTION_CAP)
             summary["motion"]["cap_raised_at_step"] = cap_raised_at
+        elif seq is not None and seq.get("motion_complete"):
+            # complete from the start: ramped on the coarsest level (coarse_start's records)
+            summary["motion"]["completed_at_step"] = 0
+            summary["motion"]["on_coarser_level"] = True
     if seq is not None:
         summary["coarse_start"] = seq
     result = Result(summary=summary, u=u, model=model, out=Path(out) if out else None)

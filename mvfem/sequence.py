@@ -8,7 +8,8 @@ fine mesh, leaves the fine solve the end game only. Three things make that start
 
 - the transfer (:func:`transfer`): each fine reference node is projected onto the nearest
   coarse reference triangle and carried by that triangle's deformation, its offset from the
-  triangle in the triangle's rotated frame; clamped dofs keep their (zero) Dirichlet values.
+  triangle in the triangle's rotated frame; clamped dofs keep their Dirichlet values (zero,
+  or a prescribed motion's, complete: nested levels of a repair).
   A state in which an edge crosses a triangle is tried again with every fine node on the
   deformed coarse surface itself (no offsets: nested levels then lie on the coarse closed
   surface, which does not cross, but where a new node projects just across a coarse edge),
@@ -152,7 +153,8 @@ def unfold(X: np.ndarray, cells: np.ndarray, free: np.ndarray, U: np.ndarray,
     return None, sweeps
 
 
-def transfer(coarse, fine, scales=SCALES, sweeps: int = 0) -> dict:
+def transfer(coarse, fine, scales=SCALES, sweeps: int = 0, clamp: np.ndarray | None = None
+             ) -> dict:
     """Set ``fine.u`` (a :class:`mvfem.model.Model`) to the closed state of ``coarse`` (a
     solved model of the same scene on another mesh), collective. Returns what happened:
     ``{"used": bool, "reason": str, "max_distance_mm": float, "offsets": bool, "scale":
@@ -168,7 +170,12 @@ def transfer(coarse, fine, scales=SCALES, sweeps: int = 0) -> dict:
     pushed apart nor counted); split, the fine edges' ends are beyond it, and the fine level
     sees the crossing. The demo at 16.5 kPa refined once: 2 edges; scaled back to 0.8 the
     middle level of the demo refined twice took 115 steps, smoothed in one sweep 85 (36-62
-    where nothing crosses; README, "Nested levels")."""
+    where nothing crosses; README, "Nested levels").
+
+    ``clamp`` (rank 0; (N, 3) displacements of the fine nodes, read at the fixed dofs only):
+    the fine level's Dirichlet values where a prescribed motion has moved them (a ring: the
+    coarse closure has its annulus on the ring, and the new annulus nodes go onto the ring's
+    curve, not onto the chords between the coarse ones); zero without it."""
     comm = fine.comm
     cv, fv = coarse.view, fine.view
     if cv is None or fv is None:
@@ -186,7 +193,8 @@ def transfer(coarse, fine, scales=SCALES, sweeps: int = 0) -> dict:
 
         for offsets in (True, False):
             Uf, dist = transfer_nodes(cv.X, cv.cells, Uc, fv.X, offsets=offsets)
-            Uf[~fv.free] = 0.0          # the clamp (no prescribed motion: zero)
+            # the clamp: zero, or the prescribed motion's values
+            Uf[~fv.free] = 0.0 if clamp is None else clamp[~fv.free]
             crossing = crossings(Uf)
             if not crossing:
                 break
@@ -202,8 +210,9 @@ def transfer(coarse, fine, scales=SCALES, sweeps: int = 0) -> dict:
                     out.update(used=True, unfolded=k)
         if crossing and not out["used"]:
             for scale in scales:
-                if not crossings(scale * Uf):
-                    Uf *= scale
+                scaled = np.where(fv.free, scale * Uf, Uf)   # (the clamp's values kept)
+                if not crossings(scaled):
+                    Uf = scaled
                     out.update(used=True, scale=float(scale))
                     break
         if not out["used"]:
