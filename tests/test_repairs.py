@@ -670,6 +670,36 @@ def test_full_ring_and_band_close_the_dilated_valve(unrepaired, shape, tmp_path)
 
 
 @pytest.mark.slow
+def test_ring_on_nested_levels_closes_the_refined_valve(unrepaired, ringed, tmp_path):
+    """The 36 mm D ring on the dilated valve at 3 mm refined once, level by level (session
+    47): the ring ramps on the 3 mm level, the refined level starts with it complete and
+    converges (on the refined mesh alone from the open state: 677 steps, 55 s; level by
+    level 284 + 282, 41 s; README "Refined repairs, level by level"). Its annulus is the
+    refined loop placed on the ring, twice the nodes on the same curve: the area seen along
+    the axis is nearer the ring's closed form, pi/2 b (a_ant + a_post) = 763.4 mm^2, than
+    the 3 mm closure's (an inscribed polygon's error falls as h^2, fourfold; at least
+    twofold asked). The repair's effect holds: the orifice below a fifth of the unrepaired
+    valve's, no leaflet through another."""
+    scene = mvfem.load_scene(PATHOLOGICAL).with_changes(
+        {**COARSE, "mesh.refine": 1, **_repair("ring_d36.toml")})
+    s = mvfem.solve(scene, out=tmp_path / "ring_refined", progress=False).summary
+    assert s["converged"], s["stop_reason"]
+    cs = s["coarse_start"]
+    assert cs["nested"] and cs["used"] and cs["motion_complete"]
+    assert s["motion"]["completed_at_step"] == 0
+    assert s["max_penetration_mm"] == 0.0
+    exact = np.pi / 2 * 18 * 27
+    coarse = ringed[1].summary["valve"]["annulus_area_mm2"]
+    fine = s["valve"]["annulus_area_mm2"]
+    print(f"refined ring: {cs['steps']} + {s['newton_iterations']} steps, "
+          f"{s['wall_time_s']:.1f} s; annulus {fine:.2f} mm^2 (3 mm: {coarse:.2f}; ring "
+          f"{exact:.2f}); orifice {s['valve']['regurgitant_orifice_area_mm2']:.2f} mm^2")
+    assert abs(fine - exact) < 0.5 * abs(coarse - exact)
+    assert s["valve"]["regurgitant_orifice_area_mm2"] < \
+        0.2 * unrepaired["valve"]["regurgitant_orifice_area_mm2"]
+
+
+@pytest.mark.slow
 def test_ring_too_small_says_why_it_stops():
     """A 32 mm ring on the dilated annulus (its perimeter 0.57 of the annulus's) converges
     with the exponent capped, but the true law then needs an exponent of 42 at the annulus
