@@ -41,7 +41,7 @@ import numpy as np
 from .io import RawSurface, _raise_from_root, mesh_from_arrays, read_surface
 from .valve import ValveMesh, write_valve
 
-__all__ = ["ImportedValve", "valve_from_file", "valve_from_surface", "write_valve_with_chordae",
+__all__ = ["ImportedValve", "refine_surface", "valve_from_file", "valve_from_surface", "write_valve_with_chordae",
            "chord_lengths", "DEFAULT_LABELS", "FAMILY_CODES", "FORMATS"]
 
 logger = logging.getLogger(__name__)
@@ -116,6 +116,40 @@ def valve_from_surface(comm, raw: RawSurface | None, labels: dict[int, str] | No
     msh, cell_tags, facet_tags = mesh_from_arrays(comm, *arrays)
     names, info = extras.pop("names"), extras.pop("info")
     return ImportedValve(msh, cell_tags, facet_tags, names, info, **extras)
+
+
+def refine_surface(raw: RawSurface, times: int) -> RawSurface:
+    """``times`` uniform 1-to-4 splits of an imported valve surface (``mesh.refine`` of a
+    file), each new node at its edge's midpoint: the facets stay the file's, so the surface
+    is as the file gives it, with a finer displacement on it (the generated valve places its
+    new nodes on its own curved surface instead). The file's nodes keep their indices (the
+    chordae's line cells and the papillary tips are unchanged), each triangle's four
+    children take its cell data, and a new node is on the annulus (``annulus`` point data)
+    where its edge is a boundary edge with both ends on it; other point data of new nodes
+    are zero (``papillary``: the tips are off the leaflets). The coarse levels of a nested
+    closure are the file itself and its fewer splits."""
+    from .refine import cell_edges, split
+
+    points = np.asarray(raw.points, dtype=np.float64)
+    tri = np.asarray(raw.triangles, dtype=np.int64).reshape(-1, 3)
+    point_data = {k: np.asarray(v) for k, v in raw.point_data.items()}
+    cell_data = {k: np.asarray(v) for k, v in raw.cell_data.items()}
+    for _ in range(times):
+        n = len(points)
+        edges, children = split(tri, n)
+        boundary = np.bincount(cell_edges(tri)[1].ravel(), minlength=len(edges)) == 1
+        points = np.vstack([points, 0.5 * (points[edges[:, 0]] + points[edges[:, 1]])])
+        for key, v in point_data.items():
+            new = np.zeros((len(edges),) + v.shape[1:], dtype=v.dtype)
+            if key == "annulus":
+                on = (v.reshape(n, -1) != 0).any(axis=1)
+                ends = boundary & on[edges[:, 0]] & on[edges[:, 1]]
+                new[ends] = v[edges[ends, 0]]
+            point_data[key] = np.concatenate([v, new])
+        cell_data = {k: np.concatenate([v] * 4) for k, v in cell_data.items()}
+        tri = children
+    return RawSurface(points=points, triangles=tri, point_data=point_data, cell_data=cell_data,
+                      lines=raw.lines, line_data=raw.line_data)
 
 
 def _root_or_error(comm, work):

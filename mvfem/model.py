@@ -164,13 +164,18 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
         except ValueError as e:
             raise InputError(f"{scene.source}: mesh.file: {e}") from None
         if "annulus" in raw.point_data:  # a valve: annulus, free edges, chordae, as generated
-            from mvfem.meshes.imported import valve_from_surface
+            from mvfem.meshes.imported import refine_surface, valve_from_surface
 
+            if m["refine"]:
+                raw = refine_surface(raw, m["refine"])
             try:
                 surface = valve_from_surface(comm, raw, m["labels"], source=m["file"])
             except ValueError as e:
                 raise InputError(f"{scene.source}: mesh.file: {e}") from None
             return _resected(scene, surface, comm)
+        if m["refine"]:
+            raise InputError(f"{scene.source}: mesh.refine: refines valves only ({m['file']} has "
+                             "no 'annulus' point data)")
         values = raw.cell_data.get("leaflet")
         msh, tags = meshes.to_dolfinx(comm, raw, values)
         names = {v: int(k) for k, v in (m["labels"] or {}).items()}

@@ -330,8 +330,8 @@ def _check_region(path: str, region: dict) -> dict:
 
 
 def _check_mesh(mesh: dict, base_dir: Path) -> None:
-    if mesh["refine"] and mesh["generator"] != "valve":
-        raise _Bad("mesh.refine", "refines generated valves only (generator = \"valve\")")
+    if mesh["refine"] and mesh["generator"] not in ("valve", "file"):
+        raise _Bad("mesh.refine", "refines valves only (generator = \"valve\", or a valve file)")
     if mesh["refine"] > 4:
         raise _Bad("mesh.refine", f"at most 4 (each refinement is 4x the cells), "
                    f"got {mesh['refine']}")

@@ -567,3 +567,80 @@ def test_example_imported_valve_closes(tmp_path):
     assert result.converged
     v = result.summary["valve"]
     assert v["chordae_force_N"]["count"] > 20 and v["chordae_force_N"]["taut"] > 0
+
+
+# --- mesh.refine of a valve file (session 47) -------------------------------------------------
+
+def _angle_range(raw) -> tuple[float, float]:
+    """Smallest and largest corner angle (rad) of the triangles of a raw surface."""
+    x = raw.points[raw.triangles]
+    out = []
+    for i in range(3):
+        u, w = x[:, (i + 1) % 3] - x[:, i], x[:, (i + 2) % 3] - x[:, i]
+        c = np.einsum("ij,ij->i", u, w) / np.linalg.norm(u, axis=1) / np.linalg.norm(w, axis=1)
+        out.append(np.arccos(np.clip(c, -1.0, 1.0)))
+    ang = np.concatenate(out)
+    return float(ang.min()), float(ang.max())
+
+
+def test_refined_import_splits_the_files_facets(tmp_path):
+    """``refine_surface``: each triangle of the file split 1-to-4 at its edges' midpoints, so
+    each child is similar to its parent (the same smallest and largest angle). A flat split
+    keeps each leaflet's area (the four children tile their parent, so to
+    roundoff) and the annulus's perimeter (the new annulus nodes are its chords' midpoints),
+    with 4x the triangles and 2x the annulus nodes (every annulus edge halves; an interior
+    edge between two annulus nodes would not be one); the file's nodes keep their indices
+    and places, so the chordae, their insertions and the tips are the file's."""
+    from mvfem.meshes.imported import refine_surface, valve_from_surface
+
+    comm = MPI.COMM_SELF
+    path = str(tmp_path / "valve4.vtu")
+    write_valve_with_chordae(path, valve(comm, size=4.0, free_edge_size=2.0))
+    raw = read_surface(path)
+    fine_raw = refine_surface(raw, 2)
+    assert np.array_equal(fine_raw.points[:len(raw.points)], raw.points)
+    assert np.array_equal(fine_raw.lines, raw.lines)
+    # split at the midpoints, every child is similar to its parent: the same angles
+    for a, b in zip(_angle_range(raw), _angle_range(fine_raw)):
+        assert b == pytest.approx(a, abs=1e-9)
+    coarse, fine = valve_from_surface(comm, raw), valve_from_surface(comm, fine_raw)
+    c, f = coarse.info, fine.info
+    assert f["cells"] == 16 * c["cells"]
+    assert f["annulus_nodes"] == 4 * c["annulus_nodes"]
+    assert f["annulus_perimeter_mm"] == pytest.approx(c["annulus_perimeter_mm"], rel=1e-12)
+    for name in ("anterior", "posterior"):
+        assert f["leaflet_area_mm2"][name] == pytest.approx(c["leaflet_area_mm2"][name],
+                                                            rel=1e-12)
+        assert _area(fine, name) == pytest.approx(_area(coarse, name), rel=1e-12)
+    assert f["chordae"] == c["chordae"] > 10
+    assert np.array_equal(fine.insertion_points, coarse.insertion_points)
+    assert np.array_equal(fine.papillary_tips, coarse.papillary_tips)
+    assert np.allclose(fine.commissures, coarse.commissures, atol=1e-9)
+
+
+def test_refined_import_closes_level_by_level(tmp_path):
+    """A valve file with ``mesh.refine = 1`` closes as nested levels: the file first, then its
+    split from that closure (the coarse nodes are the fine mesh's first nodes: nothing to
+    interpolate across cells). ``mesh.refine`` of a file that is not a valve (no 'annulus'
+    point data) is an input error naming the key."""
+    import mvfem
+    from mvfem.errors import InputError
+
+    path = str(tmp_path / "valve5.vtu")
+    write_valve_with_chordae(path, valve(MPI.COMM_SELF, size=5.0, free_edge_size=2.5))
+    scene = {"mesh": {"generator": "file", "file": path, "refine": 1},
+             "region": [{"label": "anterior", "law": "mny", "params": "MNY-mean"},
+                        {"label": "posterior", "law": "mny", "params": "MNY-mean",
+                         "leaflet": "posterior"}],
+             "load": {"pressure": "16 kPa"}}
+    r = mvfem.solve(scene, progress=False)
+    s = r.summary
+    assert s["converged"], s["stop_reason"]
+    cs = s["coarse_start"]
+    assert cs["nested"] and cs["used"] and cs["refine"] == 0
+    assert s["cells"] == 4 * cs["cells"]
+    disk = str(tmp_path / "disk.vtu")
+    assert main(["mesh", "disk", "--radius", "5", "--size", "2", "--out", disk]) == 0
+    with pytest.raises(InputError, match="mesh.refine: refines valves only"):
+        mvfem.solve({"mesh": {"generator": "file", "file": disk, "refine": 1},
+                     "region": [{"law": "svk", "params": "SVK"}]}, progress=False)
