@@ -1165,7 +1165,7 @@ def test_coarser_levels_get_their_own_step_budget_and_tolerance(monkeypatch, cha
 
 
 @pytest.mark.parametrize("changes, what", [
-    ({"mesh.generator": "disk", "mesh.refine": 1}, "generated valves only"),
+    ({"mesh.generator": "disk", "mesh.refine": 1}, "refines valves only"),
     ({"mesh.refine": 5}, "at most 4"),
     ({"mesh.refine": -1}, ""),
 ])
