@@ -25,6 +25,10 @@ atrium) and the valve's axis (the inside of the open funnel). The ventricle is t
 annulus plane where the papillary tips are; without tips, the side the leaflets hang to (with
 a warning).
 
+``mesh.refine`` splits the file's triangles before the valve is built
+(:func:`refine_surface`, each new node at its edge's midpoint: the file's surface, a finer
+mesh on it).
+
 Lengths are those of the file (mm). Geometry only: numpy and scipy, no physics.
 """
 
@@ -41,8 +45,9 @@ import numpy as np
 from .io import RawSurface, _raise_from_root, mesh_from_arrays, read_surface
 from .valve import ValveMesh, write_valve
 
-__all__ = ["ImportedValve", "refine_surface", "valve_from_file", "valve_from_surface", "write_valve_with_chordae",
-           "chord_lengths", "DEFAULT_LABELS", "FAMILY_CODES", "FORMATS"]
+__all__ = ["ImportedValve", "refine_surface", "valve_from_file", "valve_from_surface",
+           "write_valve_with_chordae", "chord_lengths", "DEFAULT_LABELS", "FAMILY_CODES",
+           "FORMATS"]
 
 logger = logging.getLogger(__name__)
 
