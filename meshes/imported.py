@@ -133,16 +133,19 @@ def refine_surface(raw: RawSurface, times: int) -> RawSurface:
     where its edge is a boundary edge with both ends on it; other point data of new nodes
     are zero (``papillary``: the tips are off the leaflets). The coarse levels of a nested
     closure are the file itself and its fewer splits."""
-    from .refine import cell_edges, split
+    from .refine import split
 
     points = np.asarray(raw.points, dtype=np.float64)
     tri = np.asarray(raw.triangles, dtype=np.int64).reshape(-1, 3)
     point_data = {k: np.asarray(v) for k, v in raw.point_data.items()}
     cell_data = {k: np.asarray(v) for k, v in raw.cell_data.items()}
     for _ in range(times):
-        n = len(points)
+        n, m = len(points), len(tri)
         edges, children = split(tri, n)
-        boundary = np.bincount(cell_edges(tri)[1].ravel(), minlength=len(edges)) == 1
+        # each parent's three edges are its middle child's nodes (as meshes.valve's _refine
+        # reads them): an edge of one cell is on the boundary
+        mids = children[3 * m:] - n
+        boundary = np.bincount(mids.ravel(), minlength=len(edges)) == 1
         points = np.vstack([points, 0.5 * (points[edges[:, 0]] + points[edges[:, 1]])])
         for key, v in point_data.items():
             new = np.zeros((len(edges),) + v.shape[1:], dtype=v.dtype)

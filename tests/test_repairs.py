@@ -193,6 +193,8 @@ def test_tie_rest_length_ramps_from_the_open_distance():
 
 # --------------------------------------------------------------------------- prescribed motion
 SHIFT = np.array([1.5, -1.0, 2.0])
+#: both leaflets St Venant-Kirchhoff: stiff at rest, unlike the Fung laws
+SVK = {f"region.{i}.{k}": v for i in (0, 1) for k, v in (("law", "svk"), ("params", "SVK"))}
 
 
 def _coarse_rest_scene(**changes):
@@ -251,8 +253,7 @@ def test_translated_annulus_on_nested_levels_moves_the_refined_valve_rigidly(tmp
     here, at a tolerance of 1e-8 or 1e-9 alike). Also under ``mpirun -n 2``."""
     from mpi4py import MPI
 
-    svk = {f"region.{i}.{k}": v for i in (0, 1) for k, v in (("law", "svk"), ("params", "SVK"))}
-    scene = _coarse_rest_scene(**{"chordae.enabled": False, "mesh.refine": 1, **svk})
+    scene = _coarse_rest_scene(**{"chordae.enabled": False, "mesh.refine": 1, **SVK})
     ann, _ = _write_targets(tmp_path, scene, SHIFT)
     r = mvfem.solve(scene.with_changes({"annulus.target": ann}), progress=False)
     s = r.summary
@@ -276,8 +277,7 @@ def test_refused_nested_start_ramps_the_motion_from_the_open_state(tmp_path, mon
 
     monkeypatch.setattr(mvfem.sequence, "transfer",
                         lambda *a, **k: {"used": False, "reason": "refused by the test"})
-    svk = {f"region.{i}.{k}": v for i in (0, 1) for k, v in (("law", "svk"), ("params", "SVK"))}
-    scene = _coarse_rest_scene(**{"chordae.enabled": False, "mesh.refine": 1, **svk})
+    scene = _coarse_rest_scene(**{"chordae.enabled": False, "mesh.refine": 1, **SVK})
     ann, _ = _write_targets(tmp_path, scene, SHIFT)
     s = mvfem.solve(scene.with_changes({"annulus.target": ann}), progress=False).summary
     assert s["converged"], s["stop_reason"]
