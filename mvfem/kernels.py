@@ -1064,8 +1064,8 @@ def _cache_dir() -> Path:
 def _threads() -> int:
     """Threads for the kernels' loops: ``MVFEM_THREADS`` where set, else ``OMP_NUM_THREADS``,
     else this process's share of the cores it may run on (all of them in a serial run; one
-    each under ``mpirun -n 2`` on two cores: only rank 0 runs the kernels, but the other
-    rank polls for messages meanwhile)."""
+    each under ``mpirun -n 2`` on two cores, until :func:`mvfem.nodal.lend_cores` gives rank
+    0, which alone runs the kernels, the cores of the ranks that sleep meanwhile)."""
     for var in ("MVFEM_THREADS", "OMP_NUM_THREADS"):
         try:
             n = int(os.environ.get(var, ""))

@@ -9,7 +9,9 @@ the residual vector and the tangent matrix that SNES assembles from the forms.
 Everything here happens on rank 0, which holds all P1 nodes in the global numbering (the
 owned blocks of every rank, in rank order): a valve has a few thousand nodes, and the pair
 search and the tethers cost milliseconds. Rows and columns of Dirichlet dofs are dropped
-(PETSc ignores negative indices), so the terms never disturb the boundary conditions.
+(PETSc ignores negative indices), so the terms never disturb the boundary conditions. Under
+mpirun the other ranks sleep meanwhile (:func:`idle_wait`) and lend rank 0 their cores
+(:func:`lend_cores`), and rank 0 sends each rank its own rows of the forces and the tangent.
 """
 
 from __future__ import annotations
@@ -18,7 +20,67 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
-__all__ = ["Blocks", "NodalView", "PointTerms", "add_csr", "smooth_penalty", "lumped_area"]
+__all__ = ["Blocks", "NodalView", "PointTerms", "add_csr", "smooth_penalty", "lumped_area",
+           "idle_wait", "lend_cores"]
+
+#: seconds the ranks other than 0 sleep between two looks at the barrier of :func:`idle_wait`
+IDLE_POLL_S = 2e-4
+
+
+def idle_wait(comm) -> None:
+    """Collective: the ranks other than 0 wait for rank 0 asleep, not spinning.
+
+    The point terms are computed on rank 0 alone. Meanwhile the other ranks used to wait in
+    the next collective (a ``bcast``, a vector's or a matrix's assembly), where Open MPI
+    polls, holding their cores, so rank 0's kernels had one thread under ``mpirun -n 2`` on
+    two cores where a serial run has two. Here they wait on a non-blocking barrier that
+    they look at every :data:`IDLE_POLL_S`, and rank 0's kernels get their cores
+    (:func:`lend_cores`). Every rank calls it where rank 0's own work ends."""
+    if comm.size == 1:
+        return
+    req = comm.Ibarrier()
+    if comm.rank == 0:
+        req.Wait()
+        return
+    while not req.Test():
+        time.sleep(IDLE_POLL_S)
+
+
+def lend_cores(comm) -> int:
+    """Collective: give rank 0, which computes the point terms, the cores of every rank on its
+    host (its affinity widened to their union, its kernels' threads that many), as the others
+    sleep while it does (:func:`idle_wait`). Not where ``MVFEM_THREADS`` or
+    ``OMP_NUM_THREADS`` sets the threads. Returns rank 0's kernel threads (every rank)."""
+    import os
+    import socket
+
+    from mvfem import kernels
+
+    if comm.size == 1:
+        return kernels.threads()
+    try:
+        mine = sorted(os.sched_getaffinity(0))
+    except AttributeError:
+        mine = []
+    every = comm.gather((socket.gethostname(), mine), root=0)
+    n = 0
+    if comm.rank == 0:
+        fixed = any(os.environ.get(v, "").strip() for v in ("MVFEM_THREADS", "OMP_NUM_THREADS"))
+        cores = sorted({c for host, cs in every if host == every[0][0] for c in cs})
+        if not fixed and cores and len(cores) > len(mine) and kernels.load() is not None:
+            # the kernels' threads are made now, with every core allowed; this thread goes
+            # back to its own core, where its single-threaded work does not meet a rank
+            # that polls
+            try:
+                os.sched_setaffinity(0, cores)
+                kernels.threads(len(cores))
+                kernels.load()[1].team_size()
+            except OSError:
+                pass
+            finally:
+                os.sched_setaffinity(0, mine)
+        n = kernels.threads()
+    return int(comm.bcast(n, root=0))
 
 
 class Blocks:
@@ -138,6 +200,7 @@ class NodalView:
         # every node's three global dofs, -1 where fixed (rank 0): what dof_indices gathers
         dofs = 3 * np.arange(len(self.free))[:, None] + np.arange(3)
         self._dofs = np.where(self.free, dofs, -1).astype(PETSc.IntType)
+        lend_cores(comm)
 
     def gather(self, owned: np.ndarray) -> np.ndarray | None:
         """Owned dof values of every rank (a flat array of this rank's) -> (N, 3) on rank 0."""
@@ -164,13 +227,21 @@ class NodalView:
         return self._dofs[nodes].reshape(len(nodes), -1)
 
 
-def add_csr(A: PETSc.Mat, csr) -> None:
-    """Add ``(indptr, cols, vals)``, rows over every dof in the global numbering (rank 0's
-    rows; other ranks pass none), to ``A`` in one ``setValuesIJV`` (no assembly)."""
+def add_csr(A: PETSc.Mat, csr, first: int = 0) -> None:
+    """Add ``(indptr, cols, vals)``, consecutive rows from global row ``first`` (by default
+    rows over every dof in the global numbering), to ``A`` in one ``setValuesIJV`` (no
+    assembly)."""
     IT = PETSc.IntType
     indptr, cols, vals = csr
     A.setValuesIJV(indptr.astype(IT), cols.astype(IT), vals, addv=PETSc.InsertMode.ADD_VALUES,
-                   rowmap=np.arange(len(indptr) - 1, dtype=IT))
+                   rowmap=np.arange(first, first + len(indptr) - 1, dtype=IT))
+
+
+def _rows(csr, lo: int, hi: int):
+    """Rows ``lo:hi`` of ``(indptr, cols, vals)`` (indptr from 0)."""
+    indptr, cols, vals = csr
+    ip = indptr[lo:hi + 1]
+    return ip - ip[0], cols[ip[0]:ip[-1]], vals[ip[0]:ip[-1]]
 
 
 class PointTerms:
@@ -215,6 +286,7 @@ class PointTerms:
                 blk.project(blk._stiffness)
             else:
                 stale = True
+        idle_wait(self.view.comm)
         if stale:
             self._last_x = None
         return bool(able)
@@ -234,6 +306,7 @@ class PointTerms:
         else:
             blocks = [t(x) for t in self.terms]
             self._last_x, self._last = x, blocks
+        idle_wait(self.view.comm)
         return blocks
 
     def energy(self, x_owned: np.ndarray) -> float:
@@ -265,22 +338,45 @@ class PointTerms:
                 if squeeze is not None and hasattr(t, "squeeze_limit"):
                     a = t.squeeze_limit(x, dx, a, keep=squeeze)
                 alpha = min(alpha, a)
+        idle_wait(self.view.comm)
         alpha = self.view.comm.bcast(alpha, root=0)
         self.limit_s += time.perf_counter() - t0
         return alpha
 
     def add_residual(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        """Add the terms' forces to ``b`` (collective). On one process through ``setValues``;
+        on more, rank 0 sums them into one array over every dof and sends each rank the
+        slice of its rows, which it adds to its own entries: ``setValues`` of other ranks'
+        entries went through PETSc's stash, whose assembly took 0.45 s of the 5 mm demo
+        refined once under ``mpirun -n 2`` (README "MPI scaling")."""
         t0 = time.perf_counter()
         blocks = self.evaluate(x.array_r)
-        for blk in blocks:
-            if len(blk.nodes) == 0:
-                continue
-            dofs = self.view.dof_indices(blk.nodes).ravel()
-            keep = dofs >= 0
-            b.setValues(dofs[keep], blk.force.reshape(-1)[keep],
-                        addv=PETSc.InsertMode.ADD_VALUES)
-        b.assemblyBegin()
-        b.assemblyEnd()
+        comm = self.view.comm
+        if comm.size == 1:
+            for blk in blocks:
+                if len(blk.nodes) == 0:
+                    continue
+                dofs = self.view.dof_indices(blk.nodes).ravel()
+                keep = dofs >= 0
+                b.setValues(dofs[keep], blk.force.reshape(-1)[keep],
+                            addv=PETSc.InsertMode.ADD_VALUES)
+            b.assemblyBegin()
+            b.assemblyEnd()
+        else:
+            slices = None
+            if comm.rank == 0:
+                f = np.zeros(3 * len(self.view.free))
+                for blk in blocks:
+                    if len(blk.nodes) == 0:
+                        continue
+                    dofs = self.view.dof_indices(blk.nodes).ravel()
+                    keep = dofs >= 0
+                    f += np.bincount(dofs[keep], blk.force.reshape(-1)[keep], len(f))
+                r = b.getOwnershipRanges()
+                slices = [f[lo:hi] for lo, hi in zip(r[:-1], r[1:])]
+            mine = comm.scatter(slices, root=0)
+            with b.localForm() as bl:
+                bl.array[: len(mine)] += mine
         self.time_s += time.perf_counter() - t0
 
     def add_jacobian(self, x: PETSc.Vec, A: PETSc.Mat) -> None:
@@ -300,14 +396,28 @@ class PointTerms:
         blocks = self.evaluate(x.array_r)
         parts = [self._stiffness_csr([blk for blk in blocks if blk.csr is None])]
         parts += [blk.csr() for blk in blocks if blk.csr is not None and len(blk.nodes)]
+        idle_wait(self.view.comm)
         self.time_s += time.perf_counter() - t0
         return [csr for csr in parts if csr is not None]
 
     def insert(self, A: PETSc.Mat, parts: list) -> None:
-        """Add the CSR parts of :meth:`tangent_parts` to ``A`` and assemble it (collective)."""
+        """Add the CSR parts of :meth:`tangent_parts` to ``A`` and assemble it (collective).
+        On more than one process rank 0 sends each rank its rows of the parts, which it adds
+        as its own: other ranks' rows set on rank 0 went through PETSc's stash, whose
+        assemblies took 1.2 s of the 5 mm demo refined once under ``mpirun -n 2``."""
         t0 = time.perf_counter()
-        for csr in parts:
-            add_csr(A, csr)
+        comm = self.view.comm
+        if comm.size == 1:
+            for csr in parts:
+                add_csr(A, csr)
+        else:
+            rows = None
+            if comm.rank == 0:
+                r = A.getOwnershipRanges()
+                rows = [[_rows(csr, lo, hi) for csr in parts] for lo, hi in zip(r[:-1], r[1:])]
+            lo = A.getOwnershipRange()[0]
+            for csr in comm.scatter(rows, root=0):
+                add_csr(A, csr, first=lo)
         A.assemble()
         self.time_s += time.perf_counter() - t0
 

@@ -194,6 +194,7 @@ class SNESProblem:
         new pairs cost tens of ms on later steps. The pattern only grows (entries of pairs
         that part are kept as zeros), so the factorisation's analysis is redone only here."""
         from mvfem import kernels
+        from mvfem.nodal import idle_wait
 
         mine = None
         if self.comm.rank == 0 and parts:
@@ -202,6 +203,7 @@ class SNESProblem:
             else:   # only the parts that add entries are merged (the hinges' fixed one: once)
                 grow = [p for p in parts if kernels.csr_missing(self._room, p)]
                 mine = self._union(grow) if grow else None
+        idle_wait(self.comm)
         if not self.comm.bcast(mine is not None, root=0):
             return
         # (one process: its rows are all of them, no scatter; 0.13-0.19 s of the

@@ -437,15 +437,15 @@ def _grown_fivefold(history):
     return out
 
 
-def _small_valve(prefix: str, **kw):
+def _small_valve(prefix: str, comm=None, **kw):
     """The demo valve at 5 mm under its pressure, and its problem (point terms, potential and
-    load as a run has them)."""
+    load as a run has them), on ``comm`` (every process by default)."""
     from mvfem.model import build_model
     from mvfem.scene import load_scene
     from mvfem.solver import SNESProblem
 
     scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
-    m = build_model(scene.with_changes({"mesh.size": 5.0}), MPI.COMM_WORLD)
+    m = build_model(scene.with_changes({"mesh.size": 5.0}), comm or MPI.COMM_WORLD)
     m.pressure.value = m.p_target
     pb = SNESProblem(m.residual, m.u, m.bcs, prefix=prefix, point_terms=m.point_terms,
                      potential=m.energy, load=m.load_form, **kw)
@@ -595,6 +595,96 @@ def test_tangent_is_assembled_at_its_state(comm):
         assert diff.norm(PETSc.NormType.INFINITY) > 1e-3 * at_x.norm(PETSc.NormType.INFINITY)
     finally:
         pb.destroy()
+
+
+@pytest.mark.mpi
+def test_point_terms_reach_the_same_dofs_on_any_number_of_processes(comm):
+    """Under mpirun rank 0, which computes the point terms, sends each rank its slice of
+    their forces and its rows of their tangent (``PointTerms.add_residual``, ``insert``),
+    where it used to set them through PETSc's stash. At a smoothly displaced state of the 5
+    mm demo (chordae, hinges, contact), the point terms' forces alone and the whole tangent
+    give the same numbering-free numbers on all processes as the same valve built by each
+    rank on its own (``COMM_SELF``): the forces' norm, their product with a smooth field
+    ``w``, and ``w^T K w`` with and without the point terms, to 1e-10 of each."""
+    from dolfinx.fem import petsc as fpetsc
+
+    def numbers(c):
+        m, pb = _small_valve(f"same_dofs_{c.size}_", comm=c)
+        try:
+            x = _displaced(m, pb, 0.2, -0.1, 0.5)
+            w = pb.u.vector.copy()
+            w.array[:] = _smooth(m, 0.3, 0.7, -0.2)
+            fpetsc.set_bc(w, m.bcs, scale=0.0)
+            f = pb.b.duplicate()
+            f.set(0.0)
+            m.point_terms.add_residual(x, f)
+            Kw = w.duplicate()
+            quad = []
+            for terms in (m.point_terms, None):
+                pb.point_terms = terms
+                pb.evaluate_tangent(x, 0.0)
+                pb.A.mult(w, Kw)
+                quad.append(w.dot(Kw))
+            pb.point_terms = m.point_terms
+            return np.array([f.norm(), f.dot(w), quad[0], quad[0] - quad[1]])
+        finally:
+            pb.destroy()
+
+    alone = numbers(MPI.COMM_SELF)
+    every = numbers(comm)
+    assert np.all(np.abs(alone) > 0)
+    assert np.allclose(every, alone, rtol=1e-10, atol=0), (every, alone)
+
+
+@pytest.mark.mpi
+def test_other_ranks_wait_for_rank_0_asleep_and_lend_it_their_cores(comm, monkeypatch):
+    """While rank 0 computes the point terms the others wait in ``nodal.idle_wait``, asleep:
+    in 0.4 s of rank 0's work they spend less than 0.1 s of processor time (in a
+    ``Barrier`` Open MPI polls: the whole 0.4 s). ``nodal.lend_cores`` gives rank 0's kernels
+    as many threads as the ranks on its host have cores (each rank given one core of the
+    host's here, so that an earlier lending does not hide a missing one), and leaves rank
+    0's own thread on its core. The checks come after the last collective call, so that a
+    failure on one rank cannot leave the others waiting."""
+    import os
+    import socket
+    import threading
+    import time
+
+    from mvfem import kernels
+    from mvfem.nodal import idle_wait, lend_cores
+
+    if comm.rank == 0:
+        time.sleep(0.4)
+    cpu = time.process_time()
+    idle_wait(comm)
+    spent = time.process_time() - cpu
+    waited = comm.allreduce(spent if comm.rank > 0 else 0.0, op=MPI.MAX)
+
+    for var in ("MVFEM_THREADS", "OMP_NUM_THREADS"):
+        monkeypatch.delenv(var, raising=False)
+    before = os.sched_getaffinity(0)
+    host = socket.gethostname()
+    every = comm.allgather((host, sorted(before)))
+    cores = sorted(set().union(*[set(cs) for h, cs in every if h == host]))
+    narrow = {cores[comm.rank % len(cores)]}
+    given = comm.allgather((host, narrow))
+    expected = len(set().union(*[cs for h, cs in given if h == given[0][0]]))
+    os.sched_setaffinity(0, narrow)
+    try:
+        n = lend_cores(comm)
+        kept = os.sched_getaffinity(0) == narrow
+        team = kernels.load()[1].team_size() if comm.rank == 0 else n
+        # the kernels' threads (the main one's siblings) were made with every core allowed
+        spread = comm.rank > 0 or comm.size == 1 or any(
+            len(os.sched_getaffinity(int(t.name))) == expected
+            for t in Path("/proc/self/task").iterdir() if int(t.name) != threading.get_native_id())
+    finally:
+        os.sched_setaffinity(0, before)
+        kernels.threads(kernels._threads())
+    team = comm.bcast(team, root=0)
+    assert waited < 0.1, waited
+    assert kept and comm.allreduce(spread, op=MPI.LAND)
+    assert n == team == (expected if comm.size > 1 else kernels.threads())
 
 
 def test_point_terms_time_includes_their_energy():

@@ -1966,7 +1966,7 @@ def test_point_terms_jacobian_is_the_sum_of_the_free_entries_of_the_blocks(monke
     blocks = [Blocks(four, np.zeros((80, 4, 3)), rng.normal(size=(80, 12, 12))),
               Blocks(one, np.zeros((15, 1, 3)), rng.normal(size=(15, 3, 3))),
               Blocks(np.zeros((0, 4), dtype=np.int64), np.zeros((0, 4, 3)), np.zeros((0, 12, 12)))]
-    terms = PointTerms(SimpleNamespace(X=np.zeros((N, 3)), free=free), [])
+    terms = PointTerms(SimpleNamespace(X=np.zeros((N, 3)), free=free, comm=MPI.COMM_SELF), [])
     terms.evaluate = lambda x: blocks
     A = PETSc.Mat().createAIJ([3 * N, 3 * N], bsize=3, comm=MPI.COMM_SELF)
     A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
