@@ -557,9 +557,10 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
     (mvfem/sequence.py): the mesh refined once less (``mesh.refine``, nested levels), else the
     mesh of ``solver.coarse_start``. What happened, for summary.json ``coarse_start``. The
     coarser levels get their method's default ``max_steps`` and ``tolerance``, whatever the
-    scene sets. A nested level with a prescribed motion (a ring, ties, moved tips) takes the
-    motion complete, its own Dirichlet values at the clamped nodes (``motion_complete``);
-    where the closure below is not used, the motion ramps from the open state as usual."""
+    scene sets. A level with a prescribed motion (a ring, ties, moved tips), nested or
+    sequenced, takes the motion complete, its own Dirichlet values at the clamped nodes
+    (``motion_complete``); where the closure below is not used, the motion ramps from the open
+    state as usual."""
     import copy
 
     from mvfem.scene import _make
@@ -585,9 +586,6 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
         if _method(model) != "pseudo-time":
             raise InputError(f"{where}: needs the pseudo-time method (a valve: chordae or "
                              "contact); load steps start from zero pressure")
-        if model.motion:
-            raise InputError(f"{where}: the scene prescribes a motion "
-                             f"({', '.join(model.motion)}), which ramps from the open state")
         levels = scene["solver"]["coarse_start"]
         coarser = [h for h in levels if h > hc] if isinstance(levels, list) else []
         if coarser:  # the coarse solve starts from the next level in its turn
@@ -616,10 +614,10 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
             "cells": res.summary["cells"], "wall_time_s": time.perf_counter() - t0}
     if res.summary.get("coarse_start"):  # its own coarser start, included in wall_time_s
         info["coarser"] = res.summary["coarse_start"]
-    # a prescribed motion is complete in the closure below: this level starts with it complete
-    # (its Dirichlet values, tips and ties), or ramps it from the open state if that start is
-    # not used
-    moving = nested and model.ramp is not None
+    # a prescribed motion is complete in the closure below (a nested level's, or a coarser
+    # mesh's): this level starts with it complete (its Dirichlet values, tips and ties), or
+    # ramps it from the open state if that start is not used
+    moving = model.ramp is not None
     if not res.converged:
         info.update(used=False, reason="the coarse solve stopped short")
     else:
@@ -762,7 +760,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
         # symmetric tangent's cheaper factorisation down to that (SYMMETRIC_ABOVE)
         sequenced = seq is not None and seq["used"]
         motion = _motion_ramp(model)
-        if motion is not None and not sequenced:  # (a nested level's is complete: above)
+        if motion is not None and not sequenced:  # (a sequenced level's is complete)
             hook = _AdaptiveRamp(model, motion, lambda: ptc.history)
             model.exponent_cap.value = MOTION_CAP
         on_step = _PseudoTimeProgress(load_norm, progress)

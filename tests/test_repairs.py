@@ -269,6 +269,29 @@ def test_translated_annulus_on_nested_levels_moves_the_refined_valve_rigidly(tmp
     assert s["newton_iterations"] < 20   # the start is the translation but for the resampling
 
 
+def test_translated_annulus_from_a_coarser_mesh_moves_the_valve_rigidly(tmp_path):
+    """``solver.coarse_start`` with a prescribed motion (refused until session 48): the 6 mm
+    mesh ramps the motion from the open state (its annulus resampled along the 4 mm mesh's
+    translated loop: ``match`` "auto" is "curve" there), and the 4 mm mesh starts from that
+    closure with the motion complete, its own Dirichlet values imposed. At zero pressure, no
+    chordae, SVK leaflets: every node moves by exactly the translation (1e-6 mm), in fewer
+    than 20 steps (5). Without the motion carried up, the 4 mm mesh keeps its annulus where it
+    was: 2.0 mm off (the translation's z), after 51 steps."""
+    scene = _coarse_rest_scene(**{"chordae.enabled": False, "solver.coarse_start": 6.0, **SVK})
+    ann, _ = _write_targets(tmp_path, scene, SHIFT)
+    r = mvfem.solve(scene.with_changes({"annulus.target": ann}), progress=False)
+    s = r.summary
+    assert s["converged"], s["stop_reason"]
+    cs = s["coarse_start"]
+    assert cs["size_mm"] == 6.0 and cs["used"] and cs["motion_complete"]
+    assert s["motion"]["completed_at_step"] == 0 and s["motion"]["on_coarser_level"]
+    err = float(np.abs(r.u.x.array.reshape(-1, 3) - SHIFT).max())
+    print(f"translation from 6 mm: largest error {err:.3g} mm, {cs['steps']} coarse and "
+          f"{s['newton_iterations']} steps")
+    assert err < 1e-6
+    assert s["newton_iterations"] < 20
+
+
 def test_refused_nested_start_ramps_the_motion_from_the_open_state(tmp_path, monkeypatch):
     """Where the closure below is not used (a transfer refused: a crossing that neither
     smoothing nor scaling removes), the refined level starts from the open state and ramps
