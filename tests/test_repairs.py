@@ -237,6 +237,28 @@ def test_translated_annulus_at_zero_pressure_moves_the_valve_rigidly(tmp_path):
     assert m["max_displacement_mm"] == pytest.approx(np.linalg.norm(SHIFT))
 
 
+def _translated_from_coarser(tmp_path, changes: dict):
+    """The 4 mm demo (or the scene ``changes`` make of it) at zero pressure, SVK leaflets, no
+    chordae, its annulus translated by ``SHIFT``, closed from a coarser start that ``changes``
+    sets: checks that the start was used with the motion complete, and returns the summary
+    and the largest error of the displacement against the translation (every rank)."""
+    from mpi4py import MPI
+
+    scene = _coarse_rest_scene(**{"chordae.enabled": False, **changes, **SVK})
+    ann, _ = _write_targets(tmp_path, scene, SHIFT)
+    r = mvfem.solve(scene.with_changes({"annulus.target": ann}), progress=False)
+    s = r.summary
+    assert s["converged"], s["stop_reason"]
+    cs = s["coarse_start"]
+    assert cs["used"] and cs["motion_complete"]
+    assert s["motion"]["completed_at_step"] == 0 and s["motion"]["on_coarser_level"]
+    u = r.u.x.array.reshape(-1, 3)
+    err = r.model.comm.allreduce(float(np.abs(u - SHIFT).max()), op=MPI.MAX)
+    print(f"translation from a coarser start: largest error {err:.3g} mm, {cs['steps']} "
+          f"coarse and {s['newton_iterations']} steps")
+    return s, err
+
+
 @pytest.mark.mpi
 def test_translated_annulus_on_nested_levels_moves_the_refined_valve_rigidly(tmp_path):
     """A refined valve with a prescribed motion is closed level by level (session 47): the
@@ -251,24 +273,13 @@ def test_translated_annulus_on_nested_levels_moves_the_refined_valve_rigidly(tmp
     rest: there the refined level stopped 4e-3 mm from it, its residual within the
     tolerance). Within 1e-6 mm, as the translated solution with chordae below (4.4e-8 mm
     here, at a tolerance of 1e-8 or 1e-9 alike). Also under ``mpirun -n 2``."""
-    from mpi4py import MPI
-
-    scene = _coarse_rest_scene(**{"chordae.enabled": False, "mesh.refine": 1, **SVK})
-    ann, _ = _write_targets(tmp_path, scene, SHIFT)
-    r = mvfem.solve(scene.with_changes({"annulus.target": ann}), progress=False)
-    s = r.summary
-    assert s["converged"], s["stop_reason"]
-    cs = s["coarse_start"]
-    assert cs["nested"] and cs["used"] and cs["motion_complete"]
-    assert s["motion"]["completed_at_step"] == 0 and s["motion"]["on_coarser_level"]
-    u = r.u.x.array.reshape(-1, 3)
-    err = r.model.comm.allreduce(float(np.abs(u - SHIFT).max()), op=MPI.MAX)
-    print(f"refined translation: largest error {err:.3g} mm, {cs['steps']} coarse and "
-          f"{s['newton_iterations']} refined steps")
+    s, err = _translated_from_coarser(tmp_path, {"mesh.refine": 1})
+    assert s["coarse_start"]["nested"]
     assert err < 1e-6
     assert s["newton_iterations"] < 20   # the start is the translation but for the resampling
 
 
+@pytest.mark.mpi
 def test_translated_annulus_from_a_coarser_mesh_moves_the_valve_rigidly(tmp_path):
     """``solver.coarse_start`` with a prescribed motion (refused until session 48): the 6 mm
     mesh ramps the motion from the open state (its annulus resampled along the 4 mm mesh's
@@ -276,18 +287,9 @@ def test_translated_annulus_from_a_coarser_mesh_moves_the_valve_rigidly(tmp_path
     closure with the motion complete, its own Dirichlet values imposed. At zero pressure, no
     chordae, SVK leaflets: every node moves by exactly the translation (1e-6 mm), in fewer
     than 20 steps (5). Without the motion carried up, the 4 mm mesh keeps its annulus where it
-    was: 2.0 mm off (the translation's z), after 51 steps."""
-    scene = _coarse_rest_scene(**{"chordae.enabled": False, "solver.coarse_start": 6.0, **SVK})
-    ann, _ = _write_targets(tmp_path, scene, SHIFT)
-    r = mvfem.solve(scene.with_changes({"annulus.target": ann}), progress=False)
-    s = r.summary
-    assert s["converged"], s["stop_reason"]
-    cs = s["coarse_start"]
-    assert cs["size_mm"] == 6.0 and cs["used"] and cs["motion_complete"]
-    assert s["motion"]["completed_at_step"] == 0 and s["motion"]["on_coarser_level"]
-    err = float(np.abs(r.u.x.array.reshape(-1, 3) - SHIFT).max())
-    print(f"translation from 6 mm: largest error {err:.3g} mm, {cs['steps']} coarse and "
-          f"{s['newton_iterations']} steps")
+    was: 2.0 mm off (the translation's z), after 51 steps. Also under ``mpirun -n 2``."""
+    s, err = _translated_from_coarser(tmp_path, {"solver.coarse_start": 6.0})
+    assert s["coarse_start"]["size_mm"] == 6.0
     assert err < 1e-6
     assert s["newton_iterations"] < 20
 
