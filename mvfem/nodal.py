@@ -73,12 +73,14 @@ def lend_cores(comm) -> int:
             # that polls
             try:
                 os.sched_setaffinity(0, cores)
-                kernels.threads(len(cores))
-                kernels.load()[1].team_size()
-            except OSError:
+            except OSError:   # not allowed here: the kernels keep their share
                 pass
-            finally:
-                os.sched_setaffinity(0, mine)
+            else:
+                try:
+                    kernels.threads(len(cores))
+                    kernels.load()[1].team_size()
+                finally:
+                    os.sched_setaffinity(0, mine)
         n = kernels.threads()
     return int(comm.bcast(n, root=0))
 
