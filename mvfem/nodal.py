@@ -349,7 +349,7 @@ class PointTerms:
         """Add the terms' forces to ``b`` (collective). On one process through ``setValues``;
         on more, rank 0 sums them into one array over every dof and sends each rank the
         slice of its rows, which it adds to its own entries: ``setValues`` of other ranks'
-        entries went through PETSc's stash, whose assembly took 0.45 s of the 5 mm demo
+        entries went through PETSc's stash, whose assembly took 0.45 s of the 2 mm demo
         refined once under ``mpirun -n 2`` (README "MPI scaling")."""
         t0 = time.perf_counter()
         blocks = self.evaluate(x.array_r)
@@ -406,7 +406,7 @@ class PointTerms:
         """Add the CSR parts of :meth:`tangent_parts` to ``A`` and assemble it (collective).
         On more than one process rank 0 sends each rank its rows of the parts, which it adds
         as its own: other ranks' rows set on rank 0 went through PETSc's stash, whose
-        assemblies took 1.2 s of the 5 mm demo refined once under ``mpirun -n 2``."""
+        assemblies took 1.2 s of the 2 mm demo refined once under ``mpirun -n 2``."""
         t0 = time.perf_counter()
         comm = self.view.comm
         if comm.size == 1:
