@@ -20,8 +20,8 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
-__all__ = ["Blocks", "NodalView", "PointTerms", "add_csr", "smooth_penalty", "lumped_area",
-           "idle_wait", "lend_cores"]
+__all__ = ["Blocks", "NodalView", "PointTerms", "add_csr", "csr_rows", "smooth_penalty",
+           "lumped_area", "idle_wait", "lend_cores"]
 
 #: seconds the ranks other than 0 sleep between two looks at the barrier of :func:`idle_wait`
 IDLE_POLL_S = 2e-4
@@ -239,11 +239,11 @@ def add_csr(A: PETSc.Mat, csr, first: int = 0) -> None:
                    rowmap=np.arange(first, first + len(indptr) - 1, dtype=IT))
 
 
-def _rows(csr, lo: int, hi: int):
-    """Rows ``lo:hi`` of ``(indptr, cols, vals)`` (indptr from 0)."""
-    indptr, cols, vals = csr
-    ip = indptr[lo:hi + 1]
-    return ip - ip[0], cols[ip[0]:ip[-1]], vals[ip[0]:ip[-1]]
+def csr_rows(csr, lo: int, hi: int) -> tuple:
+    """Rows ``lo:hi`` of a CSR tuple ``(indptr, cols[, vals])`` (a pattern or a matrix), as
+    the same tuple with ``indptr`` from 0: a rank's own rows of rows over every dof."""
+    ip = csr[0][lo:hi + 1]
+    return (ip - ip[0],) + tuple(a[ip[0]:ip[-1]] for a in csr[1:])
 
 
 class PointTerms:
@@ -416,7 +416,7 @@ class PointTerms:
             rows = None
             if comm.rank == 0:
                 r = A.getOwnershipRanges()
-                rows = [[_rows(csr, lo, hi) for csr in parts] for lo, hi in zip(r[:-1], r[1:])]
+                rows = [[csr_rows(csr, lo, hi) for csr in parts] for lo, hi in zip(r[:-1], r[1:])]
             lo = A.getOwnershipRange()[0]
             for csr in comm.scatter(rows, root=0):
                 add_csr(A, csr, first=lo)

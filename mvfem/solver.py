@@ -243,6 +243,7 @@ class SNESProblem:
         split into each rank's rows (local indptr, global columns); None when it is no larger
         (what the numpy fallback, which has no compiled check, finds out here)."""
         from mvfem import kernels
+        from mvfem.nodal import csr_rows
 
         if kernels.load() is not None:
             # a merge of the sorted rows in C: scipy's sum of the patterns as matrices, then
@@ -267,11 +268,7 @@ class SNESProblem:
             union.sort_indices()
             self._room = (union.indptr.astype(np.int64), union.indices.astype(np.int64))
         ranges = self.A.getOwnershipRanges()
-        mine = []
-        for lo, hi in zip(ranges[:-1], ranges[1:]):
-            ip = self._room[0][lo:hi + 1]
-            mine.append((ip - ip[0], self._room[1][ip[0]:ip[-1]]))
-        return mine
+        return [csr_rows(self._room, lo, hi) for lo, hi in zip(ranges[:-1], ranges[1:])]
 
     def _precheck(self, x: PETSc.Vec, y: PETSc.Vec, *args) -> bool:
         """Scale the Newton update (x_new = x - y) to what the point terms allow."""
