@@ -123,17 +123,20 @@ def valve_from_surface(comm, raw: RawSurface | None, labels: dict[int, str] | No
     return ImportedValve(msh, cell_tags, facet_tags, names, info, **extras)
 
 
-def refine_surface(raw: RawSurface, times: int) -> RawSurface:
+def refine_surface(raw: RawSurface, times: int, smooth: bool = False) -> RawSurface:
     """``times`` uniform 1-to-4 splits of an imported valve surface (``mesh.refine`` of a
     file), each new node at its edge's midpoint: the facets stay the file's, so the surface
     is as the file gives it, with a finer displacement on it (the generated valve places its
-    new nodes on its own curved surface instead). The file's nodes keep their indices (the
+    new nodes on its own curved surface instead). With ``smooth`` (``mesh.refine_surface =
+    "smooth"``) each new node is on a smooth surface through the nodes instead
+    (:func:`mvfem.meshes.refine.smooth_midpoints`: the annulus and the free edges along their
+    own curves, the corners where they meet kept). The file's nodes keep their indices (the
     chordae's line cells and the papillary tips are unchanged), each triangle's four
     children take its cell data, and a new node is on the annulus (``annulus`` point data)
     where its edge is a boundary edge with both ends on it; other point data of new nodes
     are zero (``papillary``: the tips are off the leaflets). The coarse levels of a nested
     closure are the file itself and its fewer splits."""
-    from .refine import split
+    from .refine import cell_edges, smooth_midpoints, split
 
     points = np.asarray(raw.points, dtype=np.float64)
     tri = np.asarray(raw.triangles, dtype=np.int64).reshape(-1, 3)
@@ -146,7 +149,15 @@ def refine_surface(raw: RawSurface, times: int) -> RawSurface:
         # reads them): an edge of one cell is on the boundary
         mids = children[3 * m:] - n
         boundary = np.bincount(mids.ravel(), minlength=len(edges)) == 1
-        points = np.vstack([points, 0.5 * (points[edges[:, 0]] + points[edges[:, 1]])])
+        if smooth:
+            ring = point_data.get("annulus", np.zeros(n))
+            ring = (np.asarray(ring).reshape(n, -1) != 0).any(axis=1)
+            # a boundary edge is annulus (1) or free edge (0): where they meet is a corner
+            kind = (boundary & ring[edges[:, 0]] & ring[edges[:, 1]]).astype(np.int64)
+            new_points = smooth_midpoints(points, tri, edges, cell_edges(tri)[1], kind)
+        else:
+            new_points = 0.5 * (points[edges[:, 0]] + points[edges[:, 1]])
+        points = np.vstack([points, new_points])
         for key, v in point_data.items():
             new = np.zeros((len(edges),) + v.shape[1:], dtype=v.dtype)
             if key == "annulus":

@@ -167,7 +167,7 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
             from mvfem.meshes.imported import refine_surface, valve_from_surface
 
             if m["refine"]:
-                raw = refine_surface(raw, m["refine"])
+                raw = refine_surface(raw, m["refine"], smooth=m["refine_surface"] == "smooth")
             try:
                 surface = valve_from_surface(comm, raw, m["labels"], source=m["file"])
             except ValueError as e:

@@ -126,6 +126,9 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         # valve: uniform 1-to-4 splits of the generated mesh, new nodes on the leaflets'
         # surfaces (meshes.valve refine); the coarser levels are nested meshes of one valve
         "refine": (_int(0), 0),
+        # a valve file's new nodes: on its facets (the file's surface) or on a smooth surface
+        # through its nodes (meshes.refine.smooth_midpoints)
+        "refine_surface": (_choice("facets", "smooth"), "facets"),
         "file": (_str, None),
         "labels": (None, None),  # checked in _check_mesh
         # generator = "valve" (meshes.valve); geometry defaults there, healthy adult numbers
@@ -335,6 +338,9 @@ def _check_mesh(mesh: dict, base_dir: Path) -> None:
     if mesh["refine"] > 4:
         raise _Bad("mesh.refine", f"at most 4 (each refinement is 4x the cells), "
                    f"got {mesh['refine']}")
+    if mesh["refine_surface"] == "smooth" and mesh["generator"] != "file":
+        raise _Bad("mesh.refine_surface", "places a valve file's new nodes (generator = "
+                   "\"file\"); a generated valve's are on its own surface")
     if mesh["generator"] == "file":
         if not mesh["file"]:
             raise _Bad("mesh.file", "required when generator = \"file\"")
