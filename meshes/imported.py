@@ -45,7 +45,8 @@ import numpy as np
 from .io import RawSurface, _raise_from_root, mesh_from_arrays, read_surface
 from .valve import ValveMesh, write_valve
 
-__all__ = ["ImportedValve", "refine_surface", "valve_from_file", "valve_from_surface",
+__all__ = ["ImportedValve", "check_surface", "refine_surface", "valve_from_file",
+           "valve_from_surface",
            "write_valve_with_chordae", "chord_lengths", "DEFAULT_LABELS", "FAMILY_CODES",
            "FORMATS"]
 
@@ -149,7 +150,8 @@ def refine_surface(raw: RawSurface, times: int, smooth: bool = False) -> RawSurf
         # reads them): an edge of one cell is on the boundary
         mids = children[3 * m:] - n
         boundary = np.bincount(mids.ravel(), minlength=len(edges)) == 1
-        if smooth:
+        # (a file with non-finite nodes is split flat: the import then names its problem)
+        if smooth and np.isfinite(points[np.unique(tri)]).all():
             ring = point_data.get("annulus", np.zeros(n))
             ring = (np.asarray(ring).reshape(n, -1) != 0).any(axis=1)
             # a boundary edge is annulus (1) or free edge (0): where they meet is a corner
@@ -190,7 +192,15 @@ def _root_or_error(comm, work):
 
 # --- the valve on rank 0 ---------------------------------------------------------------------
 
-def _build(raw: RawSurface, labels: dict[int, str] | None, where: str):
+def check_surface(comm, raw: RawSurface | None, labels: dict[int, str] | None = None,
+                  source: str = "<surface>") -> None:
+    """Raise what :func:`valve_from_surface` would raise for ``raw`` (rank 0's; collective),
+    without building a mesh, its warnings or its report: a file checked before it is split
+    (``mesh.refine``) is refused in its own nodes and places, not its split's."""
+    _root_or_error(comm, lambda: _build(raw, labels, source, report=False))
+
+
+def _build(raw: RawSurface, labels: dict[int, str] | None, where: str, report: bool = True):
     points = np.asarray(raw.points, dtype=np.float64)
     tri = np.asarray(raw.triangles, dtype=np.int64).reshape(-1, 3)
     lines = np.asarray(raw.lines, dtype=np.int64).reshape(-1, 2)
@@ -318,10 +328,11 @@ def _build(raw: RawSurface, labels: dict[int, str] | None, where: str):
             "annulus_nodes": int(len(loop)), "annulus_perimeter_mm": perimeter,
             "papillary_tips": int(len(tips)), "chordae": int(len(ch["points"])),
             "chordae_trees": ch["trees"], "chordae_branch_points": ch["branch_points"]}
-    for text in said:  # only for a valve that is built: an error is the one line a user sees
-        logger.warning(text)
-    logger.info("%s: %d cells, %d nodes, %d leaflets, %d chordae from %d tips", where,
-                len(cells), len(X), len(value_of), len(ch["points"]), len(tips))
+    if report:  # only for a valve that is built: an error is the one line a user sees
+        for text in said:
+            logger.warning(text)
+        logger.info("%s: %d cells, %d nodes, %d leaflets, %d chordae from %d tips", where,
+                    len(cells), len(X), len(value_of), len(ch["points"]), len(tips))
     extras = {"names": names, "info": info,
               "papillary_tips": tips.reshape(-1, 3), "papillary_muscle": muscle,
               "insertion_points": ch["points"], "insertion_leaflet": ch["leaflet"],

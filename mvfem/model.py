@@ -164,14 +164,23 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
         except ValueError as e:
             raise InputError(f"{scene.source}: mesh.file: {e}") from None
         if "annulus" in raw.point_data:  # a valve: annulus, free edges, chordae, as generated
-            from mvfem.meshes.imported import refine_surface, valve_from_surface
+            from mvfem.meshes.imported import (check_surface, refine_surface,
+                                               valve_from_surface)
 
+            smooth = bool(m["refine"]) and m["refine_surface"] == "smooth"
+            try:
+                if m["refine"]:  # the file's own problems in its own nodes first
+                    check_surface(comm, raw, m["labels"], source=m["file"])
+            except ValueError as e:
+                raise InputError(f"{scene.source}: mesh.file: {e}") from None
             if m["refine"]:
-                raw = refine_surface(raw, m["refine"], smooth=m["refine_surface"] == "smooth")
+                raw = refine_surface(raw, m["refine"], smooth=smooth)
             try:
                 surface = valve_from_surface(comm, raw, m["labels"], source=m["file"])
             except ValueError as e:
-                raise InputError(f"{scene.source}: mesh.file: {e}") from None
+                hint = (" (split with mesh.refine_surface = \"smooth\"; \"facets\" keeps the "
+                        "file's surface)") if smooth else ""
+                raise InputError(f"{scene.source}: mesh.file: {e}{hint}") from None
             return _resected(scene, surface, comm)
         if m["refine"]:
             raise InputError(f"{scene.source}: mesh.refine: refines valves only ({m['file']} has "

@@ -476,13 +476,18 @@ def test_non_orientable_surface_is_refused(tmp_path):
         valve_from_file(MPI.COMM_SELF, path)
 
 
+@pytest.mark.parametrize("split", ["", "smooth"])
 @pytest.mark.parametrize("case", [c for c in BAD if c != "no annulus data"])
-def test_bad_valve_files_through_mvfem_run(tmp_path, capsys, case):
+def test_bad_valve_files_through_mvfem_run(tmp_path, capsys, case, split):
     """One line on stderr naming the scene, the key and the file; exit code 2; no results.
-    (A file without 'annulus' is a plain membrane, not an error.)"""
+    (A file without 'annulus' is a plain membrane, not an error.) The same line where the
+    scene splits the file smoothly (``mesh.refine = 1``, ``refine_surface = "smooth"``): the
+    file is checked before it is split, so its problems are named in its own nodes and
+    places."""
     path = _bad_file(tmp_path, case)
     scene = tmp_path / "imported.toml"
-    scene.write_text(f'[mesh]\ngenerator = "file"\nfile = "{path.name}"\n'
+    refine = 'refine = 1\nrefine_surface = "smooth"\n' if split else ""
+    scene.write_text(f'[mesh]\ngenerator = "file"\nfile = "{path.name}"\n{refine}'
                      'labels = {1 = "anterior", 2 = "posterior"}\n'
                      '[[region]]\nlabel = "anterior"\nlaw = "mny"\nparams = "MNY-mean"\n'
                      '[[region]]\nlabel = "posterior"\nlaw = "mny"\nparams = "MNY-mean"\n')
@@ -494,6 +499,7 @@ def test_bad_valve_files_through_mvfem_run(tmp_path, capsys, case):
     assert "imported.toml: mesh.file: " in lines[0] and "bad.vtu" in lines[0]
     for word in BAD[case][1]:
         assert word in lines[0]
+    assert "refine_surface" not in lines[0]
     assert not (out / "summary.json").exists()
 
 
@@ -702,3 +708,36 @@ def test_smooth_split_of_a_valve_file_lies_on_the_valves_surface(tmp_path):
         mvfem.load_scene({"mesh": {"generator": "valve", "size": 4.0, "refine": 1,
                                    "refine_surface": "smooth"},
                           "region": [{"law": "svk", "params": "SVK"}]})
+
+
+def test_a_smooth_split_that_crosses_is_refused_naming_the_split(tmp_path, monkeypatch, capsys):
+    """A file that is valid as given but whose smooth split passes through itself (here the
+    new nodes turned half round the valve's axis) is one line naming the problem and the
+    split, exit code 2; the same scene split on its facets builds its mesh."""
+    import mvfem.meshes.refine as refine_mod
+    from mvfem.model import build_mesh
+
+    import mvfem
+
+    real = refine_mod.smooth_midpoints
+
+    def folded(points, cells, edges, sides, kind=None):
+        new = real(points, cells, edges, sides, kind)
+        new[:, :2] *= -1.0  # turned half round the axis: the children span the valve
+        return new
+
+    path = tmp_path / "valve5.vtu"
+    write_valve_with_chordae(str(path), valve(MPI.COMM_SELF, size=5.0, free_edge_size=2.5))
+    scene = tmp_path / "split.toml"
+    scene.write_text(f'[mesh]\ngenerator = "file"\nfile = "{path.name}"\nrefine = 1\n'
+                     'refine_surface = "smooth"\n'
+                     '[[region]]\nlabel = "anterior"\nlaw = "mny"\nparams = "MNY-mean"\n'
+                     '[[region]]\nlabel = "posterior"\nlaw = "mny"\nparams = "MNY-mean"\n')
+    monkeypatch.setattr(refine_mod, "smooth_midpoints", folded)
+    capsys.readouterr()  # (the generator's log of the file's valve)
+    assert main(["run", str(scene), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "passes through itself" in err[0], err
+    assert 'mesh.refine_surface = "smooth"' in err[0]
+    facets = mvfem.load_scene(scene).with_changes({"mesh.refine_surface": "facets"})
+    assert build_mesh(facets, MPI.COMM_SELF).mesh.topology.index_map(2).size_local > 0
