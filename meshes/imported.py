@@ -25,9 +25,10 @@ atrium) and the valve's axis (the inside of the open funnel). The ventricle is t
 annulus plane where the papillary tips are; without tips, the side the leaflets hang to (with
 a warning).
 
-``mesh.refine`` splits the file's triangles before the valve is built
-(:func:`refine_surface`, each new node at its edge's midpoint: the file's surface, a finer
-mesh on it).
+``mesh.refine`` splits the file's triangles before the valve is built, once the file itself
+has passed the checks below (:func:`check_surface`): :func:`refine_surface`, each new node at
+its edge's midpoint (the file's surface, a finer mesh on it) or, with ``mesh.refine_surface =
+"smooth"``, on a smooth surface through the file's nodes.
 
 Lengths are those of the file (mm). Geometry only: numpy and scipy, no physics.
 """
