@@ -374,3 +374,30 @@ def test_path_spread_script(tmp_path):
     assert again.returncode == 2 and out.read_text() == written
     assert again.stderr.strip().splitlines() == [f"path_spread: --out {out}: exists; choose "
                                                  "another name"]
+
+
+def test_refine_surface_script(tmp_path):
+    """scripts/refine_surface.py on the demo's valve at 5 mm split once (three closures, about
+    12 s): the smooth split's new nodes lie closer to the generator's own surface than the
+    midpoints, and its closed leaflets closer to the generated valve's closure than those of
+    the split on the facets (0.024 against 0.040 mm on average when written); every closure
+    converged on the same cells; an existing ``--out`` is one line and exit code 2,
+    the file left as it was."""
+    out = tmp_path / "split.json"
+    cmd = [sys.executable, str(ROOT / "scripts" / "refine_surface.py"), "--size", "5",
+           "--refine", "1", "--out", str(out)]
+    r = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = {w["run"]: w for w in json.loads(out.read_text())}
+    assert set(rows) == {"generated", "facets", "smooth"}
+    assert all(w["converged"] for w in rows.values())
+    assert len({w["cells"] for w in rows.values()}) == 1
+    f, s = rows["facets"], rows["smooth"]
+    assert s["new_nodes_off_surface_mean_mm"] < f["new_nodes_off_surface_mean_mm"] / 4
+    assert s["mean_abs_error_mm"] < 0.8 * f["mean_abs_error_mm"]
+    assert s["p95_error_mm"] < f["p95_error_mm"]
+    written = out.read_text()
+    again = run_child(cmd, capture_output=True, text=True, env=_env(), timeout=120)
+    assert again.returncode == 2 and out.read_text() == written
+    assert again.stderr.strip().splitlines() == [f"refine_surface.py: --out {out}: exists; "
+                                                 "choose another name"]
