@@ -190,6 +190,10 @@ def _cmd_demo(args) -> int:
                              Path(args.out))
 
 
+#: what ``mvfem mesh KIND`` generates
+MESH_KINDS = ("valve", "disk", "square", "sphere", "octasphere", "tube")
+
+
 def _cmd_mesh(args) -> int:
     from pathlib import Path
 
@@ -197,26 +201,50 @@ def _cmd_mesh(args) -> int:
     from mpi4py import MPI
 
     from mvfem.meshes import write_surface
+    from mvfem.meshes.valve import ValveMesh
     from mvfem.model import build_mesh
-    from mvfem.scene import load_scene
+    from mvfem.scene import load_scene, parse_set_option
 
     out = Path(args.out)
+    from_scene = args.kind.lower().endswith(".toml")
+    if not from_scene and args.kind not in MESH_KINDS:
+        raise InputError(f"mvfem mesh: {args.kind!r} is neither a kind ({', '.join(MESH_KINDS)})"
+                         " nor a scene file (.toml)")
+    options = {"size": args.size, "radius": args.radius, "side": args.side,
+               "length": args.length, "refinements": args.refinements}
+    if from_scene:
+        given = [f"--{k}" for k, v in options.items() if v is not None]
+        if given:
+            raise InputError(f"mvfem mesh {args.kind}: {', '.join(given)} "
+                             f"{'applies' if len(given) == 1 else 'apply'} to a generated "
+                             "kind; change the scene's mesh with --set mesh.KEY=VALUE")
+    elif args.set:
+        raise InputError("mvfem mesh: --set applies to a scene file (mvfem mesh SCENE.toml)")
     if out.exists() and not args.force:
         raise InputError(f"--out {out}: exists; choose another name or pass --force")
     if out.suffix.lower() not in (".vtu", ".vtk", ".xdmf", ".msh", ".stl", ".ply", ".obj"):
         raise InputError(f"--out {out}: unknown mesh format {out.suffix!r} (use .vtu, .xdmf, ...)")
-    if args.kind == "valve" and out.suffix.lower() not in (".vtu", ".vtk", ".xdmf"):
+    if from_scene:
+        scene = load_scene(args.kind)
+        if args.set:
+            scene = scene.with_changes(dict(parse_set_option(t) for t in args.set))
+    else:
+        m = {"generator": args.kind, **options}
+        try:
+            scene = load_scene({"mesh": {k: v for k, v in m.items() if v is not None},
+                                "region": [{"law": "neo-hookean", "params": {"mu": 1.0},
+                                            "thickness": 1.0}]})
+        except InputError as e:  # name the option, not the scene key
+            raise InputError(str(e).replace("<dict>: mesh.", "--")) from None
+    keeps_lines = out.suffix.lower() in (".vtu", ".vtk", ".xdmf")
+    if scene["mesh"]["generator"] == "valve" and not keeps_lines:
         raise InputError(f"--out {out}: a valve file keeps its chordae as line cells: use .vtu, "
                          ".vtk or .xdmf")
-    m = {"generator": args.kind, "size": args.size, "radius": args.radius, "side": args.side,
-         "length": args.length, "refinements": args.refinements}
-    try:
-        scene = load_scene({"mesh": {k: v for k, v in m.items() if v is not None},
-                            "region": [{"law": "neo-hookean", "params": {"mu": 1.0},
-                                        "thickness": 1.0}]})
-    except InputError as e:  # name the option, not the scene key
-        raise InputError(str(e).replace("<dict>: mesh.", "--")) from None
     surface = build_mesh(scene, MPI.COMM_SELF)
+    valve = isinstance(surface, ValveMesh)  # generated, or a file with an annulus
+    if valve and not keeps_lines:
+        raise InputError(f"--out {out}: a valve file keeps its chordae as line cells: use .vtu, "
+                         ".vtk or .xdmf")
     msh = surface.mesh
     x = msh.geometry.x
     cells = msh.geometry.dofmap.array.reshape(-1, 3)
@@ -224,7 +252,7 @@ def _cmd_mesh(args) -> int:
     if surface.cell_tags is not None:
         tags[surface.cell_tags.indices] = surface.cell_tags.values
     out.parent.mkdir(parents=True, exist_ok=True)
-    if args.kind == "valve":  # the import format of CONTRACT.md: leaflets, annulus, chordae
+    if valve:  # the import format of CONTRACT.md: leaflets, annulus, chordae
         from mvfem.meshes.imported import write_valve_with_chordae
 
         write_valve_with_chordae(out, surface)
@@ -354,8 +382,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="change a key of the built-in scene, e.g. --set mesh.size=1.0")
     d.set_defaults(func=_cmd_demo)
 
-    g = sub.add_parser("mesh", help="write a generated mesh (any meshio format)")
-    g.add_argument("kind", choices=("valve", "disk", "square", "sphere", "octasphere", "tube"))
+    g = sub.add_parser("mesh", help="write a generated mesh, or a scene's (any meshio format)")
+    g.add_argument("kind", metavar="KIND|SCENE.toml",
+                   help=f"{', '.join(MESH_KINDS)}; or a scene file: the mesh it runs on (a "
+                        "valve's refined levels, a resection, a file's split), a valve with "
+                        "its chordae")
+    g.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="change a key of the scene, e.g. --set mesh.refine=1")
     g.add_argument("--out", required=True, help="mesh file, e.g. disk.vtu")
     g.add_argument("--size", type=float, help="target edge length, mm")
     g.add_argument("--radius", type=float, help="disk, sphere, tube radius, mm")
