@@ -529,6 +529,45 @@ def test_import_on_all_ranks(shared_tmp):
         valve_from_file(comm, bad)
 
 
+@pytest.mark.mpi
+def test_smooth_split_of_a_file_on_all_ranks(shared_tmp):
+    """A scene that splits a valve file smoothly builds its mesh on every rank (the file's
+    check before the split is collective): 4x the file's cells in all, and every rank's nodes
+    are nodes of the split made in one process (1e-12); a bad file is the same error on
+    every rank."""
+    from scipy.spatial import cKDTree
+
+    import mvfem
+    from mvfem.errors import InputError
+    from mvfem.meshes.imported import refine_surface
+    from mvfem.model import build_mesh
+
+    comm = MPI.COMM_WORLD
+    path = shared_tmp / "valve5.vtu"
+    if comm.rank == 0:
+        write_valve_with_chordae(str(path), valve(MPI.COMM_SELF, size=5.0, free_edge_size=2.5))
+    comm.Barrier()
+    scene = {"mesh": {"generator": "file", "file": str(path), "refine": 1,
+                      "refine_surface": "smooth"},
+             "region": [{"label": "anterior", "law": "mny", "params": "MNY-mean"},
+                        {"label": "posterior", "law": "mny", "params": "MNY-mean",
+                         "leaflet": "posterior"}]}
+    msh = build_mesh(mvfem.load_scene(scene), comm).mesh
+    cells = msh.topology.index_map(2).size_global
+    raw = read_surface(path)
+    serial = refine_surface(raw, 1, smooth=True).points
+    far = cKDTree(serial).query(msh.geometry.x)[0].max()
+    bad = shared_tmp / "bad.vtu"
+    if comm.rank == 0:
+        _bad_file(shared_tmp, "tree without root")
+    comm.Barrier()
+    with pytest.raises(InputError, match="no root"):
+        build_mesh(mvfem.load_scene({**scene, "mesh": {**scene["mesh"], "file": str(bad)}}),
+                   comm)
+    assert cells == 4 * len(raw.triangles)
+    assert far < 1e-12
+
+
 def test_mesh_command_writes_the_chordae(cli_file, tmp_path, capsys):
     """`mvfem mesh valve` writes the chordae (one line from a tip per chord, the three
     families, rest lengths) and reads back with them; a format that cannot keep line cells is
