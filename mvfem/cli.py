@@ -74,6 +74,15 @@ def _say(*args) -> None:
         print(*args, flush=True)
 
 
+def _complain(text: str) -> None:
+    """``text`` on stderr, once under ``mpirun``: every rank meets the same bad input (the
+    scene, the files and the solver's stops are decided alike on every rank), so rank 0
+    speaks for them."""
+    mpi = sys.modules.get("mpi4py.MPI")
+    if mpi is None or not mpi.Is_initialized() or mpi.COMM_WORLD.rank == 0:
+        print(text, file=sys.stderr, flush=True)
+
+
 def _parse_range(text: str, option: str) -> tuple[float, float]:
     parts = text.split(":")
     try:
@@ -245,6 +254,11 @@ def _cmd_mesh(args) -> int:
     if valve and not keeps_lines:
         raise InputError(f"--out {out}: a valve file keeps its chordae as line cells: use .vtu, "
                          ".vtk or .xdmf")
+    # under mpirun every rank has made the same mesh and passed the same checks (none may
+    # find the file rank 0 is writing); rank 0 writes
+    MPI.COMM_WORLD.Barrier()
+    if MPI.COMM_WORLD.rank != 0:
+        return 0
     msh = surface.mesh
     x = msh.geometry.x
     cells = msh.geometry.dofmap.array.reshape(-1, 3)
@@ -486,10 +500,10 @@ def main(argv: list[str] | None = None) -> int:
         _setup_logging(args.verbose)
         return args.func(args)
     except InputError as e:
-        print(f"mvfem: error: {e}", file=sys.stderr, flush=True)
+        _complain(f"mvfem: error: {e}")
         return 2
     except SolverError as e:
-        print(f"mvfem: solver stopped: {e}", file=sys.stderr, flush=True)
+        _complain(f"mvfem: solver stopped: {e}")
         return 3
     except KeyboardInterrupt:
         print("mvfem: interrupted", file=sys.stderr, flush=True)

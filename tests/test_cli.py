@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 
+import meshio
 import numpy as np
 import pytest
 from test_materials import closed_form
@@ -115,3 +116,36 @@ def test_mesh_command_writes_readable_file(tmp_path, capsys):
     assert main(["mesh", "disk", "--out", str(out)]) == 2  # never overwrites
     assert main(["mesh", "disk", "--size", "-1", "--out", str(tmp_path / "x.vtu")]) == 2
     assert "--size" in capsys.readouterr().err
+
+
+@pytest.mark.mpi
+def test_bad_input_is_one_line_and_a_mesh_one_file_under_mpirun(shared_tmp, capsys,
+                                                              monkeypatch):
+    """Under ``mpirun -n 2`` (and serially) a bad input is one line on stderr in all, rank 0's,
+    with exit code 2 on every rank; ``mvfem mesh`` writes its file once (one call of the
+    writer in all; no rank finds the file another has just written: exit code 0 on every
+    rank) and, asked again, every rank refuses to overwrite it."""
+    from mpi4py import MPI
+
+    import mvfem.meshes
+
+    comm = MPI.COMM_WORLD
+    writes = []
+    real = mvfem.meshes.write_surface
+    monkeypatch.setattr(mvfem.meshes, "write_surface",
+                        lambda *a, **k: (writes.append(1), real(*a, **k))[1])
+    capsys.readouterr()
+    missing = main(["run", str(shared_tmp / "nothere.toml")])
+    lines = comm.allgather(capsys.readouterr().err.strip().splitlines())
+    out = shared_tmp / "disk.vtu"
+    first = main(["mesh", "disk", "--radius", "5", "--size", "2", "--out", str(out)])
+    capsys.readouterr()
+    again = main(["mesh", "disk", "--radius", "5", "--size", "2", "--out", str(out)])
+    again_lines = comm.allgather(capsys.readouterr().err.strip().splitlines())
+    codes = comm.allgather((missing, first, again))
+    written = comm.allreduce(len(writes))
+    assert sum(len(x) for x in lines) == 1 and "nothere.toml" in lines[0][0], lines
+    assert all(c == (2, 0, 2) for c in codes), codes
+    assert sum(len(x) for x in again_lines) == 1 and "exists" in again_lines[0][0]
+    assert written == 1
+    assert out.is_file() and len(meshio.read(out).cells_dict["triangle"]) > 10
