@@ -138,7 +138,7 @@ def refine_surface(raw: RawSurface, times: int, smooth: bool = False) -> RawSurf
     where its edge is a boundary edge with both ends on it; other point data of new nodes
     are zero (``papillary``: the tips are off the leaflets). The coarse levels of a nested
     closure are the file itself and its fewer splits."""
-    from .refine import cell_edges, smooth_midpoints, split
+    from .refine import smooth_midpoints, split
 
     points = np.asarray(raw.points, dtype=np.float64)
     tri = np.asarray(raw.triangles, dtype=np.int64).reshape(-1, 3)
@@ -151,22 +151,22 @@ def refine_surface(raw: RawSurface, times: int, smooth: bool = False) -> RawSurf
         # reads them): an edge of one cell is on the boundary
         mids = children[3 * m:] - n
         boundary = np.bincount(mids.ravel(), minlength=len(edges)) == 1
+        # the annulus edges: boundary edges with both ends on it
+        ring = point_data.get("annulus", np.zeros(n))
+        ring = (np.asarray(ring).reshape(n, -1) != 0).any(axis=1)
+        ring_edges = boundary & ring[edges[:, 0]] & ring[edges[:, 1]]
         # (a file with non-finite nodes is split flat: the import then names its problem)
         if smooth and np.isfinite(points[np.unique(tri)]).all():
-            ring = point_data.get("annulus", np.zeros(n))
-            ring = (np.asarray(ring).reshape(n, -1) != 0).any(axis=1)
-            # a boundary edge is annulus (1) or free edge (0): where they meet is a corner
-            kind = (boundary & ring[edges[:, 0]] & ring[edges[:, 1]]).astype(np.int64)
-            new_points = smooth_midpoints(points, tri, edges, cell_edges(tri)[1], kind)
+            # a boundary edge is annulus (1) or free edge (0): where they meet is a corner;
+            # mids.T holds each cell's three edges, as cell_edges' sides do
+            new_points = smooth_midpoints(points, tri, edges, mids.T, ring_edges.astype(int))
         else:
             new_points = 0.5 * (points[edges[:, 0]] + points[edges[:, 1]])
         points = np.vstack([points, new_points])
         for key, v in point_data.items():
             new = np.zeros((len(edges),) + v.shape[1:], dtype=v.dtype)
             if key == "annulus":
-                on = (v.reshape(n, -1) != 0).any(axis=1)
-                ends = boundary & on[edges[:, 0]] & on[edges[:, 1]]
-                new[ends] = v[edges[ends, 0]]
+                new[ring_edges] = v[edges[ring_edges, 0]]
             point_data[key] = np.concatenate([v, new])
         cell_data = {k: np.concatenate([v] * 4) for k, v in cell_data.items()}
         tri = children

@@ -246,14 +246,14 @@ def _cmd_mesh(args) -> int:
         except InputError as e:  # name the option, not the scene key
             raise InputError(str(e).replace("<dict>: mesh.", "--")) from None
     keeps_lines = out.suffix.lower() in (".vtu", ".vtk", ".xdmf")
-    if scene["mesh"]["generator"] == "valve" and not keeps_lines:
-        raise InputError(f"--out {out}: a valve file keeps its chordae as line cells: use .vtu, "
-                         ".vtk or .xdmf")
+    no_lines = (f"--out {out}: a valve file keeps its chordae as line cells: use .vtu, .vtk "
+                "or .xdmf")
+    if scene["mesh"]["generator"] == "valve" and not keeps_lines:  # (before meshing it)
+        raise InputError(no_lines)
     surface = build_mesh(scene, MPI.COMM_SELF)
     valve = isinstance(surface, ValveMesh)  # generated, or a file with an annulus
     if valve and not keeps_lines:
-        raise InputError(f"--out {out}: a valve file keeps its chordae as line cells: use .vtu, "
-                         ".vtk or .xdmf")
+        raise InputError(no_lines)
     # under mpirun every rank has made the same mesh and passed the same checks (none may
     # find the file rank 0 is writing); rank 0 writes
     MPI.COMM_WORLD.Barrier()

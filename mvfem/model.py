@@ -168,12 +168,11 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
                                                valve_from_surface)
 
             smooth = bool(m["refine"]) and m["refine_surface"] == "smooth"
-            try:
-                if m["refine"]:  # the file's own problems in its own nodes first
-                    check_surface(comm, raw, m["labels"], source=m["file"])
-            except ValueError as e:
-                raise InputError(f"{scene.source}: mesh.file: {e}") from None
             if m["refine"]:
+                try:  # the file's own problems in its own nodes first
+                    check_surface(comm, raw, m["labels"], source=m["file"])
+                except ValueError as e:
+                    raise InputError(f"{scene.source}: mesh.file: {e}") from None
                 raw = refine_surface(raw, m["refine"], smooth=smooth)
             try:
                 surface = valve_from_surface(comm, raw, m["labels"], source=m["file"])
