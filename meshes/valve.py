@@ -53,7 +53,7 @@ import numpy as np
 from .generators import SurfaceMesh, _gmsh_model, _orient
 from .io import _cpp_mesh, _raise_from_root, mesh_from_arrays, write_surface
 
-__all__ = ["ValveMesh", "valve", "write_valve", "LEAFLETS", "MUSCLES"]
+__all__ = ["ValveMesh", "valve", "write_valve", "surface_distance", "LEAFLETS", "MUSCLES"]
 
 logger = logging.getLogger(__name__)
 
@@ -399,8 +399,7 @@ def _build_on_root(p: dict, annulus, papillary, anterior_direction):
 
         fit = float(cKDTree(curve.x).query((annulus - origin) @ frame.T)[0].max())
     s_c = 0.5 * p["anterior_share"]
-    leaflets = {"anterior": _Leaflet("anterior", curve, -s_c, s_c, p),
-                "posterior": _Leaflet("posterior", curve, s_c, 1.0 - s_c, p)}
+    leaflets = _leaflets(curve, p)
 
     # papillary tips in the local frame, their muscles
     if papillary is None:
@@ -925,6 +924,32 @@ def _refine(points, cells, cell_values, edges, edge_values, leaflets: dict, time
         cells, cell_values = children, np.tile(cell_values, 4)
         edges, edge_values = split_edges(edges, pairs, n), np.tile(edge_values, 2)
     return points, cells, cell_values, edges, edge_values, off
+
+
+def _leaflets(curve: "_Curve", p: dict) -> dict:
+    """The two leaflets' ruled surfaces over the annulus ``curve`` (name -> :class:`_Leaflet`),
+    the commissures at ``+-anterior_share / 2`` of its length."""
+    s_c = 0.5 * p["anterior_share"]
+    return {"anterior": _Leaflet("anterior", curve, -s_c, s_c, p),
+            "posterior": _Leaflet("posterior", curve, s_c, 1.0 - s_c, p)}
+
+
+def surface_distance(x: np.ndarray, **params) -> np.ndarray:
+    """Distances (mm) of the points ``x`` (n, 3; the parametric valve's own frame) from the
+    leaflets' ruled surfaces of the valve :func:`valve` makes with ``params`` (its defaults
+    for the rest), by the inversion its refinement uses (:func:`_surface_coordinates`): how
+    far a point is off the surface that the valve's meshes sample. A patient annulus has no
+    such surface here: ``annulus`` or ``papillary`` is a ValueError."""
+    import inspect
+
+    p = {k: v.default for k, v in inspect.signature(valve).parameters.items()
+         if v.default is not inspect.Parameter.empty}
+    p.update(params)
+    if p.get("annulus") is not None or p.get("papillary") is not None:
+        raise ValueError("surface_distance: a patient annulus has no parametric surface")
+    curve = _Curve(_ellipse(p), p["ruling_smoothing"])
+    return np.min([_surface_coordinates(lf, x)[1] for lf in _leaflets(curve, p).values()],
+                  axis=0)
 
 
 def _surface_coordinates(lf: "_Leaflet", x: np.ndarray, iterations: int = 12):

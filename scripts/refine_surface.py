@@ -14,9 +14,10 @@ valve`` writes: leaflets, annulus, chordae). Three closures at ``--pressure`` kP
   (:func:`mvfem.meshes.refine.smooth_midpoints`).
 
 Prints, for both splits of the file, the new nodes' distances from the ruled surface (the
-generator's inversion, ``meshes.valve._surface_coordinates``), and for each closure its steps
-(level by level), wall time, coaptation length, tenting height and, against the generated closure, the closed
-leaflets' mean, 95th percentile and largest distance (the scene's ``[reference] file``).
+generator's inversion, ``meshes.valve.surface_distance``), and for each closure its steps
+(level by level), wall time, coaptation length, tenting height and, against the generated
+closure, the closed leaflets' mean, 95th percentile and largest distance (the scene's
+``[reference] file``).
 ``--out`` writes the rows as JSON (refused if the file exists). Rank 0 speaks; the closures run
 under ``mpirun`` too.
 """
@@ -24,7 +25,6 @@ under ``mpirun`` too.
 from __future__ import annotations
 
 import argparse
-import importlib
 import inspect
 import json
 import shutil
@@ -47,22 +47,14 @@ def surface_distances(raw, times: int, smooth: bool, mesh: dict) -> np.ndarray:
     """Distances (mm) of the new nodes of ``raw`` split ``times`` times from the generated
     valve's ruled surfaces (the generator's defaults with the scene's ``mesh`` keys)."""
     from mvfem.meshes.imported import refine_surface
+    from mvfem.meshes.valve import surface_distance, valve
 
-    gen = importlib.import_module("mvfem.meshes.valve")
-    p = {k: v.default for k, v in inspect.signature(gen.valve).parameters.items()
-         if v.default is not inspect.Parameter.empty}
-    p.update({k: v for k, v in mesh.items() if k in p and v is not None})
-    if p.get("annulus") is not None or p.get("papillary") is not None:
-        raise ValueError("the scene's valve has a patient annulus: no parametric surface")
-    curve = gen._Curve(gen._ellipse(p), p["ruling_smoothing"])
-    s_c = 0.5 * p["anterior_share"]
-    leaflets = [gen._Leaflet("anterior", curve, -s_c, s_c, p),
-                gen._Leaflet("posterior", curve, s_c, 1.0 - s_c, p)]
+    known = inspect.signature(valve).parameters
     fine = refine_surface(raw, times, smooth=smooth)
     nodes = np.unique(np.asarray(fine.triangles))
     nodes = nodes[nodes >= len(raw.points)]
-    x = fine.points[nodes]
-    return np.min([gen._surface_coordinates(lf, x)[1] for lf in leaflets], axis=0)
+    return surface_distance(fine.points[nodes], **{k: v for k, v in mesh.items()
+                                                   if k in known and v is not None})
 
 
 def level_steps(summary: dict) -> str:

@@ -733,35 +733,25 @@ def test_refined_import_closes_level_by_level(tmp_path):
 def test_smooth_split_of_a_valve_file_lies_on_the_valves_surface(tmp_path):
     """``mesh.refine_surface = "smooth"``: a generated valve's file (4 mm) split once puts its
     new nodes within 0.033 mm of the generator's own ruled surface, which the file samples
-    (``meshes.valve._surface_coordinates``, the generator's inversion; the file's own nodes
+    (``meshes.valve.surface_distance``, the generator's inversion; the file's own nodes
     are up to 0.012 mm off it), 0.005 mm on average, where the midpoints of the flat split
-    are 0.039 mm off on average and up to 0.24 mm. The file's nodes and the annulus's new nodes are the flat split's. The
-    scene key reaches the model's mesh, and asked of a generated valve it is an input error
-    naming the key."""
-    import importlib
-    import inspect
-
+    are 0.039 mm off on average and up to 0.24 mm. The file's nodes and the annulus's new
+    nodes are the flat split's. The scene key reaches the model's mesh, and asked of a
+    generated valve it is an input error naming the key."""
     from scipy.spatial import cKDTree
 
     import mvfem
     from mvfem.errors import InputError
     from mvfem.meshes.imported import refine_surface
+    from mvfem.meshes.valve import surface_distance
     from mvfem.model import build_mesh
 
-    gen = importlib.import_module("mvfem.meshes.valve")
-    p = {k: v.default for k, v in inspect.signature(gen.valve).parameters.items()
-         if v.default is not inspect.Parameter.empty}
-    p.update(size=4.0, free_edge_size=2.0)
     path = str(tmp_path / "valve4.vtu")
     write_valve_with_chordae(path, valve(MPI.COMM_SELF, size=4.0, free_edge_size=2.0))
     raw = read_surface(path)
-    curve = gen._Curve(gen._ellipse(p), p["ruling_smoothing"])
-    s_c = 0.5 * p["anterior_share"]
-    leaflets = [gen._Leaflet("anterior", curve, -s_c, s_c, p),
-                gen._Leaflet("posterior", curve, s_c, 1.0 - s_c, p)]
 
     def off_surface(x):
-        return np.min([gen._surface_coordinates(lf, x)[1] for lf in leaflets], axis=0)
+        return surface_distance(x, size=4.0, free_edge_size=2.0)
 
     assert off_surface(raw.points[np.unique(raw.triangles)]).max() < 0.015
     flat, smooth = refine_surface(raw, 1), refine_surface(raw, 1, smooth=True)
