@@ -155,6 +155,32 @@ def _cmd_materials(args) -> int:
     return 0
 
 
+def level_lines(s: dict) -> list[str]:
+    """The terminal's lines on a nested or sequenced run's levels (summary.json ``s``): each
+    level's valve metrics, coarsest first, and how far each refinement moved the closure
+    (none where a level did not record them)."""
+    from mvfem.run import coarse_levels
+
+    levels = coarse_levels(s)[::-1]
+    if not levels or any("distance_to_finer_mm" not in lv for lv in levels):
+        return []
+    lines = [f"mesh levels: {' / '.join(str(lv['cells']) for lv in levels + [s])} cells"]
+    if s.get("valve") and all(lv.get("valve") for lv in levels):
+        def seq(key, unit):
+            vals = [lv["valve"].get(key) for lv in levels] + [s["valve"].get(key)]
+            return " / ".join("n/a" if x is None else f"{x:.3g}" for x in vals) + f" {unit}"
+
+        lines[0] += (f"; coaptation length {seq('coaptation_length_mm', 'mm')}, trace "
+                     f"{seq('coaptation_trace_length_mm', 'mm')}; tenting "
+                     f"{seq('tenting_height_mm', 'mm')}; orifice "
+                     f"{seq('regurgitant_orifice_area_mm2', 'mm2')}")
+    d = [lv["distance_to_finer_mm"] for lv in levels]
+    lines.append("each refinement moved the closure by "
+                 + " / ".join(f"{x['mean_mm']:.3g}" for x in d) + " mm on average (p95 "
+                 + " / ".join(f"{x['p95_mm']:.3g}" for x in d) + " mm)")
+    return lines
+
+
 def _solve_and_report(scene_path, changes, out) -> int:
     """Solve a scene (with ``--set`` changes) into ``out``; report on the terminal; exit 3
     when the solver stopped short. Shared by ``mvfem run`` and ``mvfem demo``."""
@@ -178,6 +204,8 @@ def _solve_and_report(scene_path, changes, out) -> int:
              f"{fmt(v.get('tenting_height_mm'), 'mm')}; max penetration "
              f"{fmt(s.get('max_penetration_mm'), 'mm')} (closest approach "
              f"{fmt((s.get('contact') or {}).get('min_distance_mm'), 'mm')})")
+    for line in level_lines(s):
+        _say(line)
     written = sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) \
         if out.is_dir() else []
     _say(f"wrote {out}: {', '.join(written)}")

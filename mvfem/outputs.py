@@ -225,8 +225,9 @@ def write_xdmf(model, fields: dict, path) -> None:
             f.write_function(fn)
 
 
-def _point_outputs(model) -> dict:
-    """Contact penetration and valve metrics (collective; the same dict on every rank)."""
+def _point_outputs(model, contact: bool = True) -> dict:
+    """Contact penetration (``contact``) and valve metrics (collective; the same dict on every
+    rank)."""
     from mvfem.metrics import valve_metrics
 
     if model.view is None:
@@ -237,7 +238,7 @@ def _point_outputs(model) -> dict:
     out = None
     if comm.rank == 0:
         out = {}
-        if model.contact is not None:
+        if model.contact is not None and contact:
             pen = model.contact.penetration(x)
             out["max_penetration_mm"] = pen["max_penetration_mm"]
             out["contact"] = {"thickness_mm": model.contact.thickness,
@@ -342,6 +343,13 @@ def write_outputs(result, problem, write: bool = True) -> None:
         if comm.rank == 0 and model.chordae is not None and len(model.chordae):
             write_chordae_csv(model, point["_x"], result.out / "chordae.csv")
         _write_maps(model, fields, point.get("_x"), result.out)
+        if comm.rank == 0 and result.level_facets is not None:
+            from mvfem.distance import level_change_map
+
+            seq = s["coarse_start"]
+            level_change_map(model.surface, result.closed, result.level_facets,
+                             seq["distance_to_finer_mm"], (seq["cells"], s["cells"]),
+                             result.out / "map_level_change.png")
     timing["output_s"] = time.perf_counter() - t0
     s["wall_time_s"] += timing["output_s"]
     # the coarser levels of a nested or sequenced start, whole (their assembly, solves and

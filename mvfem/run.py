@@ -126,6 +126,13 @@ class Result:
     model: Model
     out: Path | None
     fields: dict | None = None
+    #: the closed surface (rank 0: x, triangles, leaflet names; None elsewhere) where it was
+    #: compared with the coarser level's (``compared``, :func:`_compare_levels`); the next
+    #: finer level reuses it
+    closed: tuple | None = None
+    compared: bool = False
+    #: that comparison's per-facet distances (rank 0), for ``map_level_change.png``
+    level_facets: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:
@@ -552,7 +559,8 @@ def _dirichlet_values(model: Model) -> np.ndarray | None:
     return values
 
 
-def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
+def _coarse_start(scene: Scene, model: Model, comm, progress: bool, compare: bool = False
+                  ) -> dict:
     """Close ``scene`` on its next coarser level and move its closed state onto ``model``
     (mvfem/sequence.py): the mesh refined once less (``mesh.refine``, nested levels), else the
     mesh of ``solver.coarse_start``. What happened, for summary.json ``coarse_start``. The
@@ -560,7 +568,11 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
     scene sets. A level with a prescribed motion (a ring, ties, moved tips), nested or
     sequenced, takes the motion complete, its own Dirichlet values at the clamped nodes
     (``motion_complete``); where the closure below is not used, the motion ramps from the open
-    state as usual."""
+    state as usual.
+
+    ``compare``: the level's closure is kept for the comparison with this one's
+    (:func:`_compare_levels`): its valve metrics (``LEVEL_METRICS``) go into the record, and
+    the closed surface, privately, into ``_closed``."""
     import copy
 
     from mvfem.scene import _make
@@ -608,10 +620,13 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool) -> dict:
     t0 = time.perf_counter()
     if comm.rank == 0 and progress:
         log.info(f"coarse start: closing {what} first")
-    res = solve(coarse_scene, comm=comm, progress=progress, write=False, outputs=False)
+    res = solve(coarse_scene, comm=comm, progress=progress, write=False, outputs=False,
+                compare=compare)
     info = {**head, "converged": bool(res.converged),
             "steps": res.summary["newton_iterations"],
             "cells": res.summary["cells"], "wall_time_s": time.perf_counter() - t0}
+    if compare and res.converged:
+        info.update(_closed_level(res))
     if res.summary.get("coarse_start"):  # its own coarser start, included in wall_time_s
         info["coarser"] = res.summary["coarse_start"]
     # a prescribed motion is complete in the closure below (a nested level's, or a coarser
@@ -666,6 +681,44 @@ class _RaiseCap:
             self.info["cap_raised_at_step"] = rec.step
 
 
+#: the valve metrics of each coarser level that summary.json records (``coarse_start``)
+LEVEL_METRICS = ("coaptation_length_mm", "coaptation_trace_length_mm", "coaptation_area_mm2",
+                 "tenting_height_mm", "regurgitant_orifice_area_mm2")
+
+
+def _closed_level(res: Result) -> dict:
+    """A coarser level's closure for the comparison with the next finer one (collective): its
+    valve metrics (``valve``: ``LEVEL_METRICS``, where the scene is a valve) and its closed
+    surface (``_closed``; rank 0, None elsewhere; the one its own comparison made, else
+    made now)."""
+    from mvfem.distance import _deformed_surface
+    from mvfem.outputs import _point_outputs
+
+    rec = {"_closed": res.closed if res.compared else _deformed_surface(res.model)}
+    v = _point_outputs(res.model, contact=False).get("valve")
+    if v:
+        rec["valve"] = {k: v.get(k) for k in LEVEL_METRICS}
+    return rec
+
+
+def _compare_levels(result: Result, seq: dict, converged: bool) -> None:
+    """Where the coarser level's closure was kept (``seq["_closed"]``, :func:`_coarse_start`),
+    record how far this level's closure lies from it (``seq["distance_to_finer_mm"]``:
+    :func:`mvfem.distance.level_change`) and keep this closure (``result.closed``) for the
+    next finer level. Collective; nothing where either level stopped short."""
+    from mvfem.distance import _deformed_surface, level_change
+
+    coarser = seq.pop("_closed")
+    if not converged:
+        return
+    comm = result.model.comm
+    result.closed, result.compared = _deformed_surface(result.model), True
+    block = None
+    if comm.rank == 0:
+        block, result.level_facets = level_change(result.closed, coarser)
+    seq["distance_to_finer_mm"] = comm.bcast(block, root=0)
+
+
 def coarse_levels(summary: dict) -> list[dict]:
     """summary.json ``coarse_start`` as a list of the coarser levels' records, the next coarser
     first (each record's ``coarser`` is the one after it); empty without a coarser start."""
@@ -684,7 +737,8 @@ def _relaxed(model: Model, cap: float) -> bool:
 
 def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COMM_WORLD,
           progress: bool = True, write: bool = True,
-          initial: np.ndarray | None = None, outputs: bool = True) -> Result:
+          initial: np.ndarray | None = None, outputs: bool = True,
+          compare: bool | None = None) -> Result:
     """Solve ``scene`` (collective on ``comm``); write outputs to ``out`` when given.
 
     ``initial``: a warm start, the local displacement array (``result.u.x.array``) of an earlier
@@ -697,6 +751,12 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     levels of a nested or sequenced start, whose closed state alone the finer level uses
     (their metrics took 0.8 of the 44 s of the demo refined twice, README "Speed against
     error").
+
+    ``compare`` (default: ``outputs``; never where the scene sets ``output.levels = false``):
+    each coarser level of a nested or sequenced start
+    records its valve metrics and how far its closure lies from the next finer level's
+    (summary.json ``coarse_start``: ``valve``, ``distance_to_finer_mm``; README "How much
+    the last refinement moved the closure"), and the outputs add ``map_level_change.png``.
 
     Raises:
         InputError: the scene is invalid (nothing is written).
@@ -712,22 +772,25 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     falls by a third (README "Threads that wait, asleep", session 36).
     """
     with kernels.one_blas_thread():
-        return _solve(scene, out, comm, progress, write, initial, outputs)
+        return _solve(scene, out, comm, progress, write, initial, outputs,
+                      outputs if compare is None else compare)
 
 
-def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool) -> Result:
+def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool,
+           compare: bool) -> Result:
     """:func:`solve`'s body."""
     from mvfem.outputs import prepare_out_on_root, write_outputs
 
     t_start = time.perf_counter()
     scene = load_scene(scene)
+    compare = compare and bool(scene["output"]["levels"])
     if out is not None:
         prepare_out_on_root(out, comm)
     model = build_model(scene, comm)
     t_build = time.perf_counter() - t_start
     seq = None
     if _nested(scene, model) or _coarse_size(scene) is not None:
-        seq = _coarse_start(scene, model, comm, progress)
+        seq = _coarse_start(scene, model, comm, progress, compare)
     if seq is not None and seq["used"]:
         initial = None
     if initial is not None and not model.motion and len(initial) == len(model.u.x.array):
@@ -838,6 +901,12 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     if final_ok and not converged:
         stop_reason = (f"equilibrium residual {rel:.3g} of the load exceeds 10 x the tolerance "
                        f"{s['tolerance']:g}")
+    result = Result(summary={}, u=u, model=model, out=Path(out) if out else None)
+    t_compare = None
+    if seq is not None and "_closed" in seq:
+        t_compare = time.perf_counter()
+        _compare_levels(result, seq, converged)
+        t_compare = time.perf_counter() - t_compare
     wall = time.perf_counter() - t_start
     # disjoint: the point terms' share is taken out of the assembly and SNES times
     pt = model.point_terms
@@ -846,6 +915,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     t_linear = ptc.solve_s if ptc is not None else problem.solve_s - t_lim
     timing = {"assembly_s": problem.assembly_s - t_pt, "linear_solve_s": t_linear,
               "contact_s": t_pt + t_lim, "build_s": t_build}
+    if t_compare is not None:
+        timing["level_change_s"] = t_compare
     if comm.rank == 0 and not converged:
         log.warning(f"solver stopped short at p = {t_reached * model.p_target / 1e3:.4g} kPa "
                     f"({stop_reason}); the last converged state is kept")
@@ -885,7 +956,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
             summary["motion"]["on_coarser_level"] = True
     if seq is not None:
         summary["coarse_start"] = seq
-    result = Result(summary=summary, u=u, model=model, out=Path(out) if out else None)
+    result.summary = summary
     if outputs:
         write_outputs(result, problem, write=write and out is not None)
     problem.destroy()

@@ -211,6 +211,11 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
     "output": {
         "probes": (None, []),  # checked in _check_probes
         "xdmf": (_bool, True),
+        # a nested or sequenced run measures each coarser level's closure against the next
+        # finer one's (summary.json coarse_start: valve, distance_to_finer_mm;
+        # map_level_change.png; mvfem.run._compare_levels): about 0.9 s of the demo refined
+        # twice
+        "levels": (_bool, True),
     },
     # prescribed motion of the clamped loop (a valve's annulus, a disk's rim) to a target
     # loop in the mesh's frame, from its open (stress-free) position (mvfem/prescribed.py)

@@ -163,6 +163,30 @@ def test_candidates_match_brute_force():
         assert np.allclose(point_triangle_distance(p, x, tri, k=k), brute, rtol=0, atol=1e-12)
 
 
+def test_compiled_closest_points_match_numpy(monkeypatch):
+    """The distance's pairs go through the compiled kernel where it loads (session 50): the
+    same distances as numpy's closest points, row by row, for points whose closest point is a
+    vertex, an edge or the face (and for slivers), and the numpy path where no kernel loads
+    (``MVFEM_NO_KERNELS``)."""
+    from mvfem import distance, kernels
+    from mvfem.contact import closest_point_on_triangles
+
+    assert kernels.load() is not None, "the kernels do not compile here"
+    rng = np.random.default_rng(7)
+    m = 3000
+    a, b, c = (rng.normal(size=(m, 3)) for _ in range(3))
+    c[:200] = a[:200] + 1e-7 * rng.normal(size=(200, 3))   # slivers
+    p = rng.normal(scale=2.0, size=(m, 3))
+    p[300:600] = (a + b + c)[300:600] / 3 + 0.1 * np.cross(b - a, c - a)[300:600]  # above faces
+    expected = closest_point_on_triangles(p, a, b, c)[0]
+    got = distance._closest(p, a, b, c)
+    assert np.allclose(got, expected, rtol=1e-12, atol=1e-12)
+    # rows, not a minimum over them: each point against its own triangle
+    assert not np.allclose(got[1:], expected[:-1])
+    monkeypatch.setattr(kernels, "load", lambda: None)
+    assert np.array_equal(distance._closest(p, a, b, c), expected)
+
+
 def test_points_within_match_brute_force():
     """Whether a point is within a distance of a wavy sheet, as the minimum over all triangles
     says: points scattered near and far, and points just above the nodes (far from every
