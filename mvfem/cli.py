@@ -156,28 +156,27 @@ def _cmd_materials(args) -> int:
 
 
 def level_lines(s: dict) -> list[str]:
-    """The terminal's lines on a nested or sequenced run's levels (summary.json ``s``): each
-    level's valve metrics, coarsest first, and how far each refinement moved the closure
-    (none where a level did not record them)."""
+    """The terminal's lines on a nested or sequenced run's levels (summary.json ``s``), coarsest
+    first: their cells and how far each refinement moved the closure, then (a valve) each
+    level's metrics; none where a level did not record them."""
     from mvfem.run import coarse_levels
 
     levels = coarse_levels(s)[::-1]
     if not levels or any("distance_to_finer_mm" not in lv for lv in levels):
         return []
-    lines = [f"mesh levels: {' / '.join(str(lv['cells']) for lv in levels + [s])} cells"]
+    d = [lv["distance_to_finer_mm"] for lv in levels]
+    lines = [f"mesh levels {' / '.join(str(lv['cells']) for lv in levels + [s])} cells: each "
+             "refinement moved the closure by " + " / ".join(f"{x['mean_mm']:.3g}" for x in d)
+             + " mm on average (p95 " + " / ".join(f"{x['p95_mm']:.3g}" for x in d) + " mm)"]
     if s.get("valve") and all(lv.get("valve") for lv in levels):
         def seq(key, unit):
             vals = [lv["valve"].get(key) for lv in levels] + [s["valve"].get(key)]
             return " / ".join("n/a" if x is None else f"{x:.3g}" for x in vals) + f" {unit}"
 
-        lines[0] += (f"; coaptation length {seq('coaptation_length_mm', 'mm')}, trace "
-                     f"{seq('coaptation_trace_length_mm', 'mm')}; tenting "
+        lines.append(f"  by level: coaptation length {seq('coaptation_length_mm', 'mm')}, "
+                     f"trace {seq('coaptation_trace_length_mm', 'mm')}; tenting "
                      f"{seq('tenting_height_mm', 'mm')}; orifice "
                      f"{seq('regurgitant_orifice_area_mm2', 'mm2')}")
-    d = [lv["distance_to_finer_mm"] for lv in levels]
-    lines.append("each refinement moved the closure by "
-                 + " / ".join(f"{x['mean_mm']:.3g}" for x in d) + " mm on average (p95 "
-                 + " / ".join(f"{x['p95_mm']:.3g}" for x in d) + " mm)")
     return lines
 
 

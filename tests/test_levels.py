@@ -110,13 +110,13 @@ def test_each_level_reports_itself_against_the_next(tmp_path, monkeypatch):
     cells = [lv["cells"] for lv in levels[::-1]] + [s["cells"]]
     lengths = [lv["valve"]["coaptation_length_mm"] for lv in levels[::-1]] + [
         s["valve"]["coaptation_length_mm"]]
-    assert lines[0].startswith(f"mesh levels: {cells[0]} / {cells[1]} / {cells[2]} cells; "
-                               f"coaptation length {lengths[0]:.3g} / {lengths[1]:.3g} / "
-                               f"{lengths[2]:.3g} mm")
     moved = levels[1]["distance_to_finer_mm"]
-    assert lines[1] == (f"each refinement moved the closure by {moved['mean_mm']:.3g} / "
+    assert lines[0] == (f"mesh levels {cells[0]} / {cells[1]} / {cells[2]} cells: each "
+                        f"refinement moved the closure by {moved['mean_mm']:.3g} / "
                         f"{d['mean_mm']:.3g} mm on average (p95 {moved['p95_mm']:.3g} / "
                         f"{d['p95_mm']:.3g} mm)")
+    assert lines[1].startswith(f"  by level: coaptation length {lengths[0]:.3g} / "
+                               f"{lengths[1]:.3g} / {lengths[2]:.3g} mm")
     assert level_lines(plain.summary) == [] and "coarse_start" not in plain.summary
     assert "level_change_s" not in plain.summary["timing"]
     if comm.rank != 0:
