@@ -10,8 +10,11 @@ every run is one ``mvfem run`` process of the study runner (:mod:`mvfem.study`: 
   length, which moves less with the solver's path: README "Repairs") and area, tenting
   height, the 95th percentile and the peak of the per-facet radial Cauchy stress over both
   leaflets, chordae
-  forces (native and neochordae), tie (clip, suture) forces, and from the diastolic run the
-  orifice area and the number of separate orifices;
+  forces (native and neochordae), tie (clip, suture) forces, on a refined mesh how far its
+  last refinement moved the closure (``mesh_move_mean_mm``, ``mesh_move_p95_mm``: the
+  systolic run's ``coarse_start`` ``distance_to_finer_mm``, README "Each refined run measures
+  its own mesh error"), and from the diastolic run the orifice area and the number of
+  separate orifices;
 - ``comparison.png``: those numbers as bars, one per case;
 - ``shapes.png``: the closed valves side by side, seen from the atrium (radial stress, one
   colour range for all) and from the side (the A2-P2 direction across), and the diastolic
@@ -62,7 +65,8 @@ COLUMNS = ("case", "title", "systole", "regurgitant_orifice_area_mm2",
            "projected_orifice_area_mm2", "leak_gap_area_mm2", "coaptation_length_mm",
            "coaptation_trace_length_mm", "coaptation_area_mm2", "tenting_height_mm",
            "annulus_area_mm2", "stress_p95_Pa", "stress_max_Pa", "chordae_force_total_N",
-           "chordae_force_max_N", "neochord_force_total_N", "tie_force_max_N", "diastole",
+           "chordae_force_max_N", "neochord_force_total_N", "tie_force_max_N",
+           "mesh_move_mean_mm", "mesh_move_p95_mm", "diastole",
            "diastolic_orifice_area_mm2", "diastolic_orifice_count", "diastolic_orifice_areas_mm2",
            "run_dir")
 #: the numbers whose spread over the solver's paths ``--paths`` and ``--weights`` measure
@@ -324,6 +328,10 @@ def _rows(study, out: Path, titles: dict) -> list[dict]:
                 row["chordae_force_total_N"] = ch.get("total")
                 row["chordae_force_max_N"] = ch.get("max")
                 row["neochord_force_total_N"] = (ch.get("neochord") or {}).get("total")
+                moved = ((s or {}).get("coarse_start") or {}).get("distance_to_finer_mm")
+                if moved:
+                    row["mesh_move_mean_mm"] = moved["mean_mm"]
+                    row["mesh_move_p95_mm"] = moved["p95_mm"]
                 ties = v.get("ties") or {}
                 if ties:
                     row["tie_force_max_N"] = max(t["max_force_N"] for t in ties.values())

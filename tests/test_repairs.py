@@ -509,7 +509,9 @@ def test_repair_compare_ranges_over_the_solvers_paths(tmp_path):
 
 def test_repair_compare_path_range_leaves_out_stopped_runs(tmp_path):
     """The range is over the converged systolic runs only, the case's own first; diastolic
-    runs and a case with no path run leave it alone (summaries written here)."""
+    runs and a case with no path run leave it alone (summaries written here). A refined
+    case's mesh move is its systolic run's last refinement's (``coarse_start``), not a path
+    run's; an unrefined case has none."""
     from mvfem.compare import _rows
     from mvfem.study import Case, RunSpec, Study
 
@@ -525,9 +527,12 @@ def test_repair_compare_path_range_leaves_out_stopped_runs(tmp_path):
     for r in runs:
         ok, n, c = values[(r.case, r.set)]
         r.dir(tmp_path).mkdir(parents=True)
-        (r.dir(tmp_path) / "summary.json").write_text(json.dumps(
-            {"converged": ok, "motion": {"ramp_steps": n},
-             "valve": {"coaptation_length_mm": c, "tenting_height_mm": -c}}))
+        summary = {"converged": ok, "motion": {"ramp_steps": n},
+                   "valve": {"coaptation_length_mm": c, "tenting_height_mm": -c}}
+        if r.case == "a":  # refined: its last refinement moved the closure by c / 100 mm
+            summary["coarse_start"] = {"distance_to_finer_mm": {"mean_mm": c / 100,
+                                                                "p95_mm": c / 50}}
+        (r.dir(tmp_path) / "summary.json").write_text(json.dumps(summary))
     study = Study(title="", cases=[Case("a", "x"), Case("b", "x")], sets=[], processes=1,
                   timeout_s=None, map_case="a", include_stopped=True, biaxial=False, runs=runs)
     a, b = _rows(study, tmp_path, {"a": "a", "b": "b"})
@@ -537,6 +542,8 @@ def test_repair_compare_path_range_leaves_out_stopped_runs(tmp_path):
     assert a["regurgitant_orifice_area_min_mm2"] is None  # not in the summaries
     assert a["coaptation_length_mm"] == 5.0
     assert b["path_runs"] is None and b["coaptation_length_min_mm"] is None
+    assert (a["mesh_move_mean_mm"], a["mesh_move_p95_mm"]) == (0.05, 0.1)
+    assert b["mesh_move_mean_mm"] is None and b["mesh_move_p95_mm"] is None
 
 
 @pytest.mark.parametrize("angle", [0.0, 0.5])
