@@ -76,7 +76,7 @@ RESULT_COLUMNS = (
      "equilibrium_residual", "pressure_Pa", "max_displacement_mm", "max_penetration_mm",
      "coaptation_length_mm", "coaptation_area_mm2", "regurgitant_orifice_area_mm2",
      "tenting_height_mm", "reference_mean_abs_error_mm", "reference_p95_error_mm",
-     "reference_hausdorff_mm"]
+     "reference_hausdorff_mm", "mesh_move_mean_mm", "mesh_move_p95_mm"]
     + [f"{leaf}_{q}_{p}" for leaf in LEAFLETS for q in ("radial_strain", "radial_stress_Pa")
        for p in PERCENTILE_NAMES]
     + [f"{leaf}_cells" for leaf in LEAFLETS] + ["run_dir"])
@@ -859,6 +859,11 @@ def collect_results(study: Study, out: str | Path) -> list[dict]:
             ref = s.get("reference") or {}
             for k in ("mean_abs_error_mm", "p95_error_mm", "hausdorff_mm"):
                 row[f"reference_{k}"] = ref.get(k)
+            # a refined run: how far its last refinement moved the closure (README, "Each
+            # refined run measures its own mesh error"), beside its error against the reference
+            moved = (s.get("coarse_start") or {}).get("distance_to_finer_mm") or {}
+            row["mesh_move_mean_mm"] = moved.get("mean_mm")
+            row["mesh_move_p95_mm"] = moved.get("p95_mm")
             values = leaflet_values(d, spec.regions)
             if values is not None:
                 import numpy as np

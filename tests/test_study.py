@@ -476,3 +476,30 @@ def test_silent_exits_beyond_the_retries_are_a_failure(tmp_path, monkeypatch):
     row = _rows(tmp_path / "out" / "results.csv")[0]
     assert (row["status"], row["exit_code"]) == ("failed", "1")
     assert "exit code 1 with no output" in row["reason"]
+
+
+def test_results_carry_a_refined_runs_mesh_move(tmp_path):
+    """results.csv's ``mesh_move_mean_mm`` and ``mesh_move_p95_mm`` are the run's last
+    refinement's move (summary.json ``coarse_start.distance_to_finer_mm``), empty for a run on
+    one mesh (run files written here)."""
+    from mvfem.outputs import write_json
+    from mvfem.study import Case, RunSpec, Study, _spec_record, collect_results
+
+    runs = [RunSpec(case=c, set="MNY-mean", anterior_set="MNY-mean", posterior_set="",
+                    scene="x", changes={}, regions=[]) for c in ("fine", "plain")]
+    for r in runs:
+        d = r.dir(tmp_path)
+        d.mkdir(parents=True)
+        write_json(_spec_record(r), d / "run.json")
+        summary = {"converged": True, "valve": {"coaptation_length_mm": 7.0}}
+        if r.case == "fine":
+            summary["coarse_start"] = {"cells": 4, "distance_to_finer_mm": {
+                "mean_mm": 0.03, "p95_mm": 0.07, "hausdorff_mm": 0.3}}
+        write_json(summary, d / "summary.json")
+    study = Study(title="", cases=[Case("fine", "x"), Case("plain", "x")], sets=[],
+                  processes=1, timeout_s=None, map_case="fine", include_stopped=True,
+                  biaxial=False, runs=runs)
+    fine, plain = collect_results(study, tmp_path)
+    assert (fine["mesh_move_mean_mm"], fine["mesh_move_p95_mm"]) == (0.03, 0.07)
+    assert plain["mesh_move_mean_mm"] is None and plain["mesh_move_p95_mm"] is None
+    assert fine["coaptation_length_mm"] == 7.0 and fine["status"] == "converged"
