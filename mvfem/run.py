@@ -753,10 +753,10 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     error").
 
     ``compare`` (default: ``outputs``; never where the scene sets ``output.levels = false``):
-    each coarser level of a nested or sequenced start
-    records its valve metrics and how far its closure lies from the next finer level's
-    (summary.json ``coarse_start``: ``valve``, ``distance_to_finer_mm``; README "How much
-    the last refinement moved the closure"), and the outputs add ``map_level_change.png``.
+    each coarser level of a nested or sequenced start records its valve metrics and how far
+    its closure lies from the next finer level's (summary.json ``coarse_start``: ``valve``,
+    ``distance_to_finer_mm``; ``timing.level_change_s``, part of ``other_s``; README "Each
+    refined run measures its own mesh error"), and the outputs add ``map_level_change.png``.
 
     Raises:
         InputError: the scene is invalid (nothing is written).

@@ -11,7 +11,7 @@ coarser closed valve against it with the closed-state error of the `[reference]`
 wall time. Prints a table (README, "Mesh refinement") and writes refinement.csv.
 ``moved_mean_mm`` and ``moved_p95_mm`` are what a nested or sequenced run reports of itself:
 how far its closure lies from its next coarser level's (summary.json ``coarse_start``
-``distance_to_finer_mm``; README, "How much the last refinement moved the closure").
+``distance_to_finer_mm``; README, "Each refined run measures its own mesh error").
 
 With ``--refine N`` the levels are the demo's mesh (``--sizes``: one size) refined 0 to N times
 (``mesh.refine``, nested meshes), each closed from the closure of the level below
