@@ -133,7 +133,7 @@ def test_valve_refinement_nested_levels(tmp_path):
     reference) is closed from the unrefined closure (nested, its coarser steps recorded), the
     unrefined closure is measured against it (a positive distance, below the 5 mm mesh's
     sagitta-scale error of a few tenths of a mm: measured 0.30 mm), and refinement.csv has
-    both rows."""
+    both rows, the refined one with the move the run reports of itself."""
     import csv
 
     r = run_child([sys.executable, str(ROOT / "scripts" / "valve_refinement.py"), "--out",
@@ -147,6 +147,12 @@ def test_valve_refinement_nested_levels(tmp_path):
     assert int(fine["coarser_steps"]) > 0 and int(fine["cells"]) == 4 * int(coarse["cells"])
     assert 0.0 < float(coarse["mean_abs_error_mm"]) < 1.0
     assert float(fine["ratio"]) > 1
+    # what the refined run reports of itself: the same two closures measured the other way
+    # (the refined surface to the unrefined one; at 4 mm 0.252 against 0.206 mm), and nothing
+    # for the unrefined run
+    moved = float(fine["moved_mean_mm"])
+    assert 0.5 < moved / float(coarse["mean_abs_error_mm"]) < 2.0
+    assert moved < float(fine["moved_p95_mm"]) and coarse["moved_mean_mm"] == ""
 
 
 def test_contact_sheets_pressure_on_coarse_grids(tmp_path):
