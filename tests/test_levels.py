@@ -21,7 +21,7 @@ from mpi4py import MPI
 import mvfem.run as run_mod
 from mvfem.cli import level_lines
 from mvfem.contact import closest_point_on_triangles
-from mvfem.distance import _deformed_surface, surface_samples
+from mvfem.distance import surface_samples
 from mvfem.run import LEVEL_METRICS, solve
 from mvfem.scene import load_scene
 
