@@ -180,6 +180,18 @@ def level_lines(s: dict) -> list[str]:
     return lines
 
 
+def accuracy_line(acc: dict) -> str:
+    """The terminal's line on ``mesh.accuracy`` (summary.json ``accuracy``)."""
+    moved = "" if acc["moved_mm"] is None else (
+        f" (the last refinement moved the closure by {acc['moved_mm']:.3g} mm)")
+    if acc["met"]:
+        return f"mesh.accuracy {acc['target_mm']:g} mm: met refined {acc['refine']} time(s){moved}"
+    why = ", the most mesh.refine allows" if acc["refine"] == acc["most_refine"] else \
+        ", a level stopped short"
+    return (f"mesh.accuracy {acc['target_mm']:g} mm: NOT met; stopped refined {acc['refine']} "
+            f"time(s){moved}{why}")
+
+
 def _solve_and_report(scene_path, changes, out) -> int:
     """Solve a scene (with ``--set`` changes) into ``out``; report on the terminal; exit 3
     when the solver stopped short. Shared by ``mvfem run`` and ``mvfem demo``."""
@@ -205,6 +217,8 @@ def _solve_and_report(scene_path, changes, out) -> int:
              f"{fmt((s.get('contact') or {}).get('min_distance_mm'), 'mm')})")
     for line in level_lines(s):
         _say(line)
+    if s.get("accuracy"):
+        _say(accuracy_line(s["accuracy"]))
     written = sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) \
         if out.is_dir() else []
     _say(f"wrote {out}: {', '.join(written)}")

@@ -129,6 +129,10 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         # a valve file's new nodes: on its facets (the file's surface) or on a smooth surface
         # through its nodes (meshes.refine.smooth_midpoints)
         "refine_surface": (_choice("facets", "smooth"), "facets"),
+        # a valve refined level by level until the last refinement moves the closure by at
+        # most this on average (mm; mesh.refine the most refinements tried; mvfem.run
+        # _solve_to_accuracy, README "A mesh chosen by accuracy")
+        "accuracy": (_length, None),
         "file": (_str, None),
         "labels": (None, None),  # checked in _check_mesh
         # generator = "valve" (meshes.valve); geometry defaults there, healthy adult numbers
@@ -343,6 +347,8 @@ def _check_mesh(mesh: dict, base_dir: Path) -> None:
     if mesh["refine"] > 4:
         raise _Bad("mesh.refine", f"at most 4 (each refinement is 4x the cells), "
                    f"got {mesh['refine']}")
+    if mesh["accuracy"] is not None and not mesh["refine"]:
+        raise _Bad("mesh.accuracy", "needs mesh.refine >= 1, the most refinements to try")
     if mesh["refine_surface"] == "smooth" and mesh["generator"] != "file":
         raise _Bad("mesh.refine_surface", "places a valve file's new nodes (generator = "
                    "\"file\"); a generated valve's are on its own surface")

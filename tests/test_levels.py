@@ -12,6 +12,7 @@ module's candidate search and compiled kernel.
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ import pytest
 from mpi4py import MPI
 
 import mvfem.run as run_mod
-from mvfem.cli import level_lines
+from mvfem.cli import accuracy_line, level_lines
 from mvfem.contact import closest_point_on_triangles
 from mvfem.distance import surface_samples
 from mvfem.run import LEVEL_METRICS, solve
@@ -162,3 +163,78 @@ def test_compare_off_measures_no_level(tmp_path, monkeypatch, how):
     assert "valve" not in seq and "distance_to_finer_mm" not in seq and "_closed" not in seq
     assert "level_change_s" not in r.summary["timing"] and made == []
     assert not (tmp_path / "off" / "map_level_change.png").exists()
+
+
+@pytest.mark.mpi
+def test_accuracy_refines_until_the_move_is_small_enough(tmp_path, monkeypatch):
+    """``mesh.accuracy`` on the 7 mm demo with ``mesh.refine = 2``, levels built bottom up:
+
+    - at 1e-6 mm it refines to the cap and says the target is not met (exit 0, the closure
+      converged); on one process its closure is the plain ``mesh.refine = 2`` run's;
+    - at exactly the first refinement's move, read from that run, it stops refined once,
+      met, and never builds the twice-refined mesh; its closure is the first run's middle
+      level (the same levels in the same order: the same path), and summary.json says so;
+    - just below that move it goes on to the cap.
+
+    Under mpirun two runs of the same levels differ by roundoff (and this coarse valve's
+    middle level can then settle in another fold), so there the target that stops refined
+    once is 1 m, and the closures are not compared."""
+    from mvfem.errors import InputError
+
+    comm = MPI.COMM_WORLD
+    out = Path(comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0))
+    built, real = [], run_mod.build_model
+
+    def counted(scene, *a, **kw):
+        built.append(scene["mesh"]["refine"])
+        return real(scene, *a, **kw)
+
+    monkeypatch.setattr(run_mod, "build_model", counted)
+    demo = load_scene(DEMO).with_changes({"mesh.size": 7.0, "mesh.refine": 2})
+    tight = solve(demo.with_changes({"mesh.accuracy": 1e-6}), progress=False, write=False)
+    s = tight.summary
+    moves = [lv["distance_to_finer_mm"]["mean_mm"] for lv in run_mod.coarse_levels(s)[::-1]]
+    assert tight.converged and built == [0, 1, 2] and len(moves) == 2
+    assert s["accuracy"] == {"target_mm": 1e-6, "refine": 2, "most_refine": 2,
+                             "moved_mm": moves[1], "met": False}
+    assert accuracy_line(s["accuracy"]) == (
+        f"mesh.accuracy 1e-06 mm: NOT met; stopped refined 2 time(s) (the last refinement "
+        f"moved the closure by {moves[1]:.3g} mm), the most mesh.refine allows")
+    built.clear()
+    serial = comm.size == 1
+    target = moves[0] if serial else 1000.0
+    t0 = time.perf_counter()
+    stop = solve(demo.with_changes({"mesh.accuracy": target}), out=out / "stop",
+                 progress=False)
+    elapsed = time.perf_counter() - t0
+    t = stop.summary
+    assert built == [0, 1] and t["cells"] == run_mod.coarse_levels(s)[0]["cells"]
+    moved = t["coarse_start"]["distance_to_finer_mm"]["mean_mm"]
+    assert t["accuracy"] == {"target_mm": target, "refine": 1, "most_refine": 2,
+                             "moved_mm": moved, "met": True}
+    written = json.loads((out / "stop" / "summary.json").read_text())
+    assert written["accuracy"] == t["accuracy"] and written["cells"] == t["cells"]
+    assert accuracy_line(t["accuracy"]).startswith(
+        f"mesh.accuracy {target:g} mm: met refined 1 time(s)")
+    # the level solved before counts in the wall time, as one solved within the run does
+    # (the unrefined level is a quarter of the call here)
+    tt = t["timing"]
+    assert 0.9 * elapsed < t["wall_time_s"] <= elapsed
+    assert tt["coarse_start_s"] > 0 and tt["other_s"] > 0
+    assert tt["assembly_s"] + tt["linear_solve_s"] + tt["contact_s"] + tt["coarse_start_s"] + \
+        tt["other_s"] == pytest.approx(t["wall_time_s"], rel=1e-12)
+    if serial:
+        assert moved == moves[0]
+        assert {k: t["valve"][k] for k in LEVEL_METRICS} == \
+            run_mod.coarse_levels(s)[0]["valve"]
+        built.clear()
+        below = solve(demo.with_changes({"mesh.accuracy": moves[0] * (1 - 1e-9)}),
+                      progress=False, write=False)
+        assert built == [0, 1, 2] and below.summary["accuracy"]["refine"] == 2
+        plain = solve(demo, progress=False, write=False)
+        assert {k: s["valve"][k] for k in LEVEL_METRICS} == {
+            k: plain.summary["valve"][k] for k in LEVEL_METRICS}
+    for changes, what in (({"mesh.accuracy": 0.1, "mesh.refine": 0}, "needs mesh.refine"),
+                          ({"mesh.accuracy": 0.1, "solver.nested": False}, "needs nested levels")):
+        with pytest.raises(InputError, match=f"mesh.accuracy: {what}"):
+            solve(demo.with_changes(changes), progress=False, write=False)
