@@ -235,6 +235,7 @@ def test_accuracy_refines_until_the_move_is_small_enough(tmp_path, monkeypatch):
         assert {k: s["valve"][k] for k in LEVEL_METRICS} == {
             k: plain.summary["valve"][k] for k in LEVEL_METRICS}
     for changes, what in (({"mesh.accuracy": 0.1, "mesh.refine": 0}, "needs mesh.refine"),
-                          ({"mesh.accuracy": 0.1, "solver.nested": False}, "needs nested levels")):
+                          ({"mesh.accuracy": 0.1, "solver.nested": False}, "needs nested levels"),
+                          ({"mesh.accuracy": 0.1, "output.levels": False}, "needs the levels")):
         with pytest.raises(InputError, match=f"mesh.accuracy: {what}"):
             solve(demo.with_changes(changes), progress=False, write=False)
