@@ -618,8 +618,6 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool, compare: boo
     # solver.tolerance stops the scene's own level earlier on the same path
     raw.get("solver", {}).pop("max_steps", None)
     raw.get("solver", {}).pop("tolerance", None)
-    raw["mesh"].pop("accuracy", None)
-    coarse_scene = _make(raw, scene.source, scene.base_dir)
     t0 = time.perf_counter()
     if coarse is not None:  # (solved before: its own wall time, then the transfer's)
         res = coarse
@@ -627,8 +625,8 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool, compare: boo
     else:
         if comm.rank == 0 and progress:
             log.info(f"coarse start: closing {what} first")
-        res = solve(coarse_scene, comm=comm, progress=progress, write=False, outputs=False,
-                    compare=compare)
+        res = solve(_make(raw, scene.source, scene.base_dir), comm=comm, progress=progress,
+                    write=False, outputs=False, compare=compare)
     info = {**head, "converged": bool(res.converged),
             "steps": res.summary["newton_iterations"],
             "cells": res.summary["cells"], "wall_time_s": time.perf_counter() - t0}
