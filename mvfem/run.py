@@ -817,13 +817,11 @@ def _solve_to_accuracy(scene: Scene, out, comm, progress: bool, write: bool,
             """Whether a finer level is needed after ``r`` (and, where not, the summary's
             ``accuracy``)."""
             d = (r.summary.get("coarse_start") or {}).get("distance_to_finer_mm")
-            if level == 0:
-                go = r.converged and level < cap
-            else:
-                if d is None:
-                    raise InputError(f"{scene.source}: mesh.accuracy: needs nested levels "
-                                     "(a valve solved in pseudo-time)")
-                go = r.converged and d["mean_mm"] > target and level < cap
+            if level > 0 and r.converged and d is None:   # (one stopped short has none)
+                raise InputError(f"{scene.source}: mesh.accuracy: needs nested levels "
+                                 "(a valve solved in pseudo-time)")
+            # a level that stopped short ends the run there: its last state, exit code 3
+            go = r.converged and level < cap and (level == 0 or d["mean_mm"] > target)
             if not go:
                 r.summary["accuracy"] = {
                     "target_mm": target, "refine": level, "most_refine": cap,

@@ -239,3 +239,36 @@ def test_accuracy_refines_until_the_move_is_small_enough(tmp_path, monkeypatch):
                           ({"mesh.accuracy": 0.1, "output.levels": False}, "needs the levels")):
         with pytest.raises(InputError, match=f"mesh.accuracy: {what}"):
             solve(demo.with_changes(changes), progress=False, write=False)
+
+
+def test_accuracy_stops_where_a_level_stops_short(monkeypatch):
+    """``mesh.accuracy``: a finer level that stops short (no distance to its coarser level,
+    which is measured on converged closures only) ends the run there, with its outputs, the
+    target not met and no move, so that the run reports the stop (exit code 3), not an input
+    error; a level that converged without a measured move is one. Each level's solve is
+    stubbed: only the decision between levels is looked at."""
+    from mvfem.errors import InputError
+
+    calls = []
+
+    def stub(sc, out, comm, progress, write, initial, outputs, compare, coarse=None,
+             more=None, converged=(True, False)):
+        level = sc["mesh"]["refine"]
+        calls.append((level, coarse is not None))
+        summary = {"converged": converged[level], "coarse_start": {} if level else None}
+        r = run_mod.Result(summary=summary, u=None, model=None, out=None)
+        r.outputs_written = not more(r)
+        return r
+
+    monkeypatch.setattr(run_mod, "_solve", stub)
+    demo = load_scene(DEMO).with_changes({"mesh.refine": 2, "mesh.accuracy": 0.05})
+    r = run_mod.solve(demo, progress=False, write=False)
+    assert calls == [(0, False), (1, True)] and r.outputs_written
+    assert r.summary["accuracy"] == {"target_mm": 0.05, "refine": 1, "most_refine": 2,
+                                     "moved_mm": None, "met": False}
+    assert accuracy_line(r.summary["accuracy"]).endswith("time(s), a level stopped short")
+    calls.clear()
+    monkeypatch.setattr(run_mod, "_solve", lambda *a, **kw: stub(*a, **kw,
+                                                                 converged=(True, True)))
+    with pytest.raises(InputError, match="mesh.accuracy: needs nested levels"):
+        run_mod.solve(demo, progress=False, write=False)
