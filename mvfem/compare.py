@@ -48,6 +48,7 @@ import csv
 import io
 import math
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +57,7 @@ from mvfem.errors import InputError
 from mvfem.scene import read_toml
 
 __all__ = ["COLUMNS", "DIASTOLIC_PRESSURE", "PATH_COLUMNS", "PATH_KEYS", "compare",
-           "load_repair", "parse_paths", "parse_weights"]
+           "load_repair", "mesh_line", "parse_paths", "parse_weights"]
 
 #: the atrial-side pressure of the diastolic check (Pa): the valve opens; a clip shows its two
 #: orifices
@@ -66,7 +67,7 @@ COLUMNS = ("case", "title", "systole", "regurgitant_orifice_area_mm2",
            "coaptation_trace_length_mm", "coaptation_area_mm2", "tenting_height_mm",
            "annulus_area_mm2", "stress_p95_Pa", "stress_max_Pa", "chordae_force_total_N",
            "chordae_force_max_N", "neochord_force_total_N", "tie_force_max_N",
-           "mesh_move_mean_mm", "mesh_move_p95_mm", "diastole",
+           "mesh_move_mean_mm", "mesh_move_p95_mm", "mesh_cells", "diastole",
            "diastolic_orifice_area_mm2", "diastolic_orifice_count", "diastolic_orifice_areas_mm2",
            "run_dir")
 #: the numbers whose spread over the solver's paths ``--paths`` and ``--weights`` measure
@@ -267,12 +268,27 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
                                 posterior_set=sets["posterior"], scene=str(scene_path),
                                 changes={**changes, **ch, VARIANTS[prefix]: v},
                                 regions=regions, scene_sha256=digest))
-    study = Study(title=f"repairs of {base['title'] or scene_path.name}", cases=study_cases,
-                  sets=list(dict.fromkeys(r.set for r in runs)),  # (variants: where run)
-                  processes=processes or 1, timeout_s=timeout,
-                  map_case="unrepaired", include_stopped=True, biaxial=False, runs=runs,
-                  source=str(scene_path))
+    def study_of(runs):
+        return Study(title=f"repairs of {base['title'] or scene_path.name}", cases=study_cases,
+                     sets=list(dict.fromkeys(r.set for r in runs)),  # (variants: where run)
+                     processes=processes or 1, timeout_s=timeout,
+                     map_case="unrepaired", include_stopped=True, biaxial=False, runs=runs,
+                     source=str(scene_path))
+
     out = prepare_out(out).resolve()
+    mesh = None
+    scene = base.with_changes(changes) if changes else base
+    if scene["mesh"]["accuracy"] is not None:  # one mesh for every case: the unrepaired one's
+        first = runs[0]  # (the unrepaired valve's systole, as the scene asks: to accuracy)
+        run_study(study_of([first]), out, processes=1, progress=progress, report=False)
+        mesh = _chosen_mesh(first.dir(out), scene)
+        one = {"mesh.refine": mesh["refine"], "mesh.accuracy": False}
+        runs = [first] + [replace(r, changes={**r.changes, **one}) for r in runs[1:]]
+        if progress:
+            import sys
+
+            sys.stderr.write(mesh_line(mesh) + "\n")
+    study = study_of(runs)
     res = run_study(study, out, processes=processes, progress=progress, report=False)
     titles = {c[0]: c[1] for c in cases}
     rows = _rows(study, out, titles)
@@ -281,8 +297,36 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
                           _shapes(study, out, view, out / "shapes.png", titles, diastolic),
                           _path_shapes(study, out, view, out / "paths.png", titles))
               if p is not None]
-    return {"rows": rows, "files": files, "counts": res,
+    return {"rows": rows, "files": files, "counts": res, "mesh": mesh,
             "moving": [name for name, _t, _c in cases if built[name]["motion"]]}
+
+
+def _chosen_mesh(d: Path, base) -> dict:
+    """The mesh every case of a comparison under ``mesh.accuracy`` closes on: where the
+    unrepaired valve's systolic run (in ``d``) stopped refining (summary.json ``accuracy``),
+    or, where that run left no such record (it failed), the most refinements the scene
+    allows."""
+    acc = (_summary(d) or {}).get("accuracy")
+    target, cap = float(base["mesh"]["accuracy"]), int(base["mesh"]["refine"])
+    if acc:
+        return {"target_mm": target, "refine": int(acc["refine"]), "most_refine": cap,
+                "moved_mm": acc.get("moved_mm"), "met": bool(acc.get("met")),
+                "chosen_by": "unrepaired"}
+    return {"target_mm": target, "refine": cap, "most_refine": cap, "moved_mm": None,
+            "met": False, "chosen_by": "mesh.refine"}
+
+
+def mesh_line(mesh: dict) -> str:
+    """The line saying which mesh a comparison under ``mesh.accuracy`` runs every case on."""
+    if mesh["chosen_by"] == "unrepaired":
+        moved = (f", its last refinement moved the closure {mesh['moved_mm']:.3g} mm"
+                 if mesh["moved_mm"] is not None else "")
+        met = "met" if mesh["met"] else "NOT met"
+        return (f"mesh.accuracy {mesh['target_mm']:g} mm ({met}): the unrepaired valve closed "
+                f"refined {mesh['refine']} time(s){moved}; every other run is on that mesh")
+    return (f"mesh.accuracy {mesh['target_mm']:g} mm: the unrepaired valve's run left no "
+            f"accuracy record; every other run is refined {mesh['refine']} time(s) "
+            "(mesh.refine)")
 
 
 # --------------------------------------------------------------------------- table
@@ -328,6 +372,7 @@ def _rows(study, out: Path, titles: dict) -> list[dict]:
                 row["chordae_force_total_N"] = ch.get("total")
                 row["chordae_force_max_N"] = ch.get("max")
                 row["neochord_force_total_N"] = (ch.get("neochord") or {}).get("total")
+                row["mesh_cells"] = (s or {}).get("cells")
                 moved = ((s or {}).get("coarse_start") or {}).get("distance_to_finer_mm")
                 if moved:
                     row["mesh_move_mean_mm"] = moved["mean_mm"]
@@ -408,6 +453,7 @@ def table_text(rows: list[dict]) -> str:
             ("coaptation_trace_length_mm", "coapt. trace mm", "{:.2f}"),
             ("coaptation_area_mm2", "coapt. area mm2", "{:.0f}"),
             ("tenting_height_mm", "tenting mm", "{:.2f}"),
+            ("mesh_move_mean_mm", "mesh move mm", "{:.3f}"),
             ("stress_p95_Pa", "stress p95 kPa", "k{:.0f}"),
             ("stress_max_Pa", "stress max kPa", "k{:.0f}"),
             ("chordae_force_total_N", "chordae N", "{:.2f}"),

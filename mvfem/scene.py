@@ -110,6 +110,16 @@ def _int(minimum):
 
 
 _length = _quantity(LENGTH, "mm")
+
+
+def _accuracy(path, v):
+    """``mesh.accuracy``: a length (mm), or false for none (the default; a ``--set`` that
+    switches off a file's target, as repair-compare does where one mesh serves every case)."""
+    if v is False:
+        return None
+    if v is True:
+        raise _Bad(path, "expected a length (mm) or false, got True")
+    return _length(path, v)
 _pressure_any = _quantity(PRESSURE, "Pa", positive=False)
 
 
@@ -132,7 +142,7 @@ _SCHEMA: dict[str, dict[str, tuple[Callable, Any]]] = {
         # a valve refined level by level until the last refinement moves the closure by at
         # most this on average (mm; mesh.refine the most refinements tried; mvfem.run
         # _solve_to_accuracy, README "A mesh chosen by accuracy")
-        "accuracy": (_length, None),
+        "accuracy": (_accuracy, None),
         "file": (_str, None),
         "labels": (None, None),  # checked in _check_mesh
         # generator = "valve" (meshes.valve); geometry defaults there, healthy adult numbers

@@ -938,3 +938,141 @@ def test_resection_and_ring_close_the_dilated_flail_valve(unrepaired, tmp_path):
     assert v["coaptation_length_mm"] > before["coaptation_length_mm"] + 1.0
     assert sut["count"] > 3 and sut["max_force_N"] > 0.0
     assert sut["max_distance_mm"] < 0.2 * opening
+
+
+def _fake_runs(calls: list, refined: int):
+    """A stand-in for the study runner: records each call's runs and writes for each a
+    summary.json as a run would (the cells of its mesh; under ``mesh.accuracy`` the record of
+    a run that stopped refining at ``refined``)."""
+    from mvfem.study import _spec_record
+
+    def run_study(study, out, processes=None, progress=True, report=True, **kw):
+        calls.append([(r.key, dict(r.changes)) for r in study.runs])
+        for r in study.runs:
+            d = r.dir(out)
+            d.mkdir(parents=True, exist_ok=True)
+            acc = r.changes.get("mesh.accuracy")
+            refine = refined if acc else r.changes.get("mesh.refine", 0)
+            summary = {"converged": True, "cells": 100 * 4 ** refine,
+                       "valve": {"coaptation_length_mm": 1.0}}
+            if acc:
+                summary["accuracy"] = {"target_mm": acc, "refine": refined, "most_refine": 2,
+                                       "moved_mm": 0.01, "met": True}
+            (d / "summary.json").write_text(json.dumps(summary))
+            (d / "run.json").write_text(json.dumps(_spec_record(r)))
+        return {"converged": len(study.runs)}
+    return run_study
+
+
+@pytest.mark.parametrize("refined", [1, 2])
+def test_repair_compare_under_accuracy_runs_every_case_on_one_mesh(tmp_path, monkeypatch,
+                                                                   refined):
+    """Under ``mesh.accuracy`` the unrepaired valve's systole runs first, alone and to the
+    accuracy; every other run (the repairs, the diastoles, the solver's other paths) then
+    runs refined as often as it stopped, with the target switched off (``mesh.accuracy =
+    false``), after the repair's own keys; the csv's ``mesh_cells`` are that one mesh's. The
+    study runner is a stand-in here (the summaries a run writes); the end-to-end run is
+    ``test_repair_compare_under_accuracy_end_to_end``."""
+    import csv
+
+    import mvfem.study
+    from mvfem.compare import compare, mesh_line
+
+    calls = []
+    monkeypatch.setattr(mvfem.study, "run_study", _fake_runs(calls, refined))
+    clip = tmp_path / "clip.toml"
+    clip.write_text('title = "clip"\n[[repair.clip]]\nat = 0.5\n[mesh]\nrefine = 1\n')
+    res = compare(DEMO, [clip], tmp_path / "cmp", weights=[0.05], progress=False,
+                  changes={"mesh.size": 7.0, "mesh.refine": 2, "mesh.accuracy": 0.05})
+    first, every = calls
+    assert first == [("unrepaired/systole", {"mesh.size": 7.0, "mesh.refine": 2,
+                                             "mesh.accuracy": 0.05, "output.xdmf": True})]
+    assert every[0] == first[0]
+    keys = [k for k, _ in every]
+    assert sorted(keys) == sorted(["unrepaired/systole", "unrepaired/diastole",
+                                   "unrepaired/weight-0.05", "clip/systole", "clip/diastole",
+                                   "clip/weight-0.05"])
+    for key, ch in every[1:]:
+        assert ch["mesh.refine"] == refined and ch["mesh.accuracy"] is False, key
+    assert res["mesh"] == {"target_mm": 0.05, "refine": refined, "most_refine": 2,
+                           "moved_mm": 0.01, "met": True, "chosen_by": "unrepaired"}
+    assert f"refined {refined} time(s)" in mesh_line(res["mesh"])
+    rows = list(csv.DictReader((tmp_path / "cmp" / "comparison.csv").open()))
+    assert [int(r["mesh_cells"]) for r in rows] == [100 * 4 ** refined] * 2
+
+
+def test_repair_compare_without_accuracy_runs_once(tmp_path, monkeypatch):
+    """Without ``mesh.accuracy`` every run goes to the runner at once, as the scene and
+    repair say (no mesh record); and where the unrepaired valve's run left no accuracy
+    record, the others are refined ``mesh.refine`` times."""
+    import mvfem.study
+    from mvfem.compare import _chosen_mesh, compare, mesh_line
+
+    calls = []
+    monkeypatch.setattr(mvfem.study, "run_study", _fake_runs(calls, 1))
+    clip = tmp_path / "clip.toml"
+    clip.write_text('[[repair.clip]]\nat = 0.5\n')
+    res = compare(DEMO, [clip], tmp_path / "cmp", diastolic=None, progress=False,
+                  changes={"mesh.size": 7.0, "mesh.refine": 1})
+    assert len(calls) == 1 and res["mesh"] is None
+    assert [ch.get("mesh.accuracy") for _, ch in calls[0]] == [None, None]
+    base = mvfem.load_scene(DEMO).with_changes({"mesh.size": 7.0, "mesh.refine": 2,
+                                                "mesh.accuracy": 0.1})
+    (tmp_path / "failed").mkdir()
+    mesh = _chosen_mesh(tmp_path / "failed", base)
+    assert (mesh["refine"], mesh["chosen_by"], mesh["met"]) == (2, "mesh.refine", False)
+    assert "no accuracy record" in mesh_line(mesh)
+
+
+def test_accuracy_false_switches_a_files_target_off(tmp_path):
+    """``mesh.accuracy = false`` is no target, as if the key were absent (what a comparison
+    sets on a scene file that asks for one); ``true`` is an input error."""
+    scene = tmp_path / "s.toml"
+    scene.write_text(DEMO.read_text().replace("[mesh]", "[mesh]\nrefine = 1\naccuracy = 0.1", 1))
+    assert mvfem.load_scene(scene)["mesh"]["accuracy"] == 0.1
+    assert mvfem.load_scene(scene).with_changes({"mesh.accuracy": False})["mesh"]["accuracy"] \
+        is None
+    with pytest.raises(InputError, match="mesh.accuracy"):
+        mvfem.load_scene(scene).with_changes({"mesh.accuracy": True})
+
+
+@pytest.mark.slow
+def test_repair_compare_under_accuracy_end_to_end(tmp_path):
+    """`repair-compare` of the 7 mm demo and a clip under ``mesh.accuracy`` (at most twice
+    refined), the target halfway between the two valves' own first moves (each measured here
+    by a run refined once): one of them alone would stop refined once, the other go on. The
+    comparison closes both on the unrepaired valve's mesh: the same cells in both summaries
+    and in the csv, the clip's run without a target of its own, and its record of the first
+    move the clip's own run refined once (the nested levels' path, to 1e-9). Slow: 45 s on
+    a 2-core Zen 2 (the stand-in test above checks the rule in the default suite)."""
+    import csv
+
+    base = mvfem.load_scene(DEMO).with_changes({"mesh.size": 7.0, "mesh.refine": 1})
+    clip_changes = {"repair.clip": [{"at": 0.5}]}
+    moves = {}
+    for case, ch in (("unrepaired", {}), ("clip", clip_changes)):
+        s = mvfem.solve(base.with_changes(ch), progress=False, write=False).summary
+        moves[case] = s["coarse_start"]["distance_to_finer_mm"]["mean_mm"]
+    target = 0.5 * (moves["unrepaired"] + moves["clip"])
+    assert moves["unrepaired"] != pytest.approx(moves["clip"], rel=1e-3)  # (the premise)
+    chosen = 2 if moves["unrepaired"] > target else 1
+    clip = tmp_path / "clip.toml"
+    clip.write_text('title = "clip"\n[[repair.clip]]\nat = 0.5\n')
+    out = tmp_path / "cmp"
+    r = _cli("repair-compare", str(DEMO), "--repairs", str(clip), "--out", str(out),
+             "--no-diastole", "--set", "mesh.size=7.0", "--set", "mesh.refine=2",
+             "--set", f"mesh.accuracy={target!r}")
+    assert r.returncode == 0, r.stderr[-3000:]
+    s = {c: json.loads((out / "runs" / c / "systole" / "summary.json").read_text())
+         for c in ("unrepaired", "clip")}
+    assert s["unrepaired"]["accuracy"]["refine"] == chosen
+    assert s["unrepaired"]["cells"] == s["clip"]["cells"] == 448 // 4 * 4 ** chosen
+    assert "accuracy" not in s["clip"] and s["clip"]["converged"]
+    level = s["clip"]["coarse_start"]
+    if chosen == 2:
+        level = level["coarser"]
+    assert level["distance_to_finer_mm"]["mean_mm"] == pytest.approx(moves["clip"], rel=1e-9)
+    rows = {row["case"]: row for row in csv.DictReader((out / "comparison.csv").open())}
+    assert rows["clip"]["mesh_cells"] == rows["unrepaired"]["mesh_cells"] == str(
+        s["clip"]["cells"])
+    assert f"the unrepaired valve closed refined {chosen} time(s)" in r.stdout
