@@ -335,7 +335,7 @@ def _cmd_study(args) -> int:
 def _cmd_repair_compare(args) -> int:
     from pathlib import Path
 
-    from mvfem.compare import compare, mesh_line, parse_paths, parse_weights, table_text
+    from mvfem.compare import compare, parse_paths, parse_weights, table_text
     from mvfem.scene import parse_set_option
     from mvfem.units import PRESSURE, parse_quantity
 
@@ -353,6 +353,8 @@ def _cmd_repair_compare(args) -> int:
                   changes=changes, progress=True, paths=paths, weights=weights)
     _say(table_text(res["rows"]))
     if res["mesh"]:
+        from mvfem.study import mesh_line
+
         _say(mesh_line(res["mesh"]))
     if any(r.get("path_runs") for r in res["rows"]):
         _say("[min, max]: over each case's converged systolic runs along the solver's paths "

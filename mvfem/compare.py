@@ -34,6 +34,10 @@ systolic runs (``PATH_COLUMNS``; ``path_runs`` names them); the printed table sh
 closures side by side (the folds). Differences between repairs within those ranges are not
 differences.
 
+Under ``mesh.accuracy`` every case closes on one mesh, the one the case needing the most
+refinements needs (:func:`mvfem.study.one_mesh_runs`: the systoles first, to the accuracy;
+the result's ``mesh`` and ``comparison.csv`` ``mesh_cells`` say which).
+
 A repair file is a TOML table of scene keys merged into the scene: tables key by key, other
 values (numbers, strings, lists such as ``[[repair.clip]]`` or ``chordae.edit``) replace the
 scene's. Its ``title`` names the repair (default: the file's stem); file names in it
@@ -48,7 +52,6 @@ import csv
 import io
 import math
 import re
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +60,7 @@ from mvfem.errors import InputError
 from mvfem.scene import read_toml
 
 __all__ = ["COLUMNS", "DIASTOLIC_PRESSURE", "PATH_COLUMNS", "PATH_KEYS", "compare",
-           "load_repair", "mesh_line", "parse_paths", "parse_weights"]
+           "load_repair", "parse_paths", "parse_weights"]
 
 #: the atrial-side pressure of the diastolic check (Pa): the valve opens; a clip shows its two
 #: orifices
@@ -218,7 +221,8 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
 
     from mvfem.outputs import prepare_out
     from mvfem.scene import load_scene
-    from mvfem.study import Case, RunSpec, Study, _leaflet_of, run_study
+    from mvfem.study import (Case, RunSpec, Study, _leaflet_of, mesh_line, one_mesh_runs,
+                             run_study)
 
     scene_path = Path(scene_path).resolve()
     base = load_scene(scene_path)
@@ -278,18 +282,19 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
     out = prepare_out(out).resolve()
     mesh = None
     scene = base.with_changes(changes) if changes else base
-    if scene["mesh"]["accuracy"] is not None:  # one mesh for every case: the unrepaired one's
-        first = runs[0]  # (the unrepaired valve's systole, as the scene asks: to accuracy)
-        run_study(study_of([first]), out, processes=1, progress=progress, report=False)
-        mesh = _chosen_mesh(first.dir(out), scene)
-        one = {"mesh.refine": mesh["refine"], "mesh.accuracy": False}
-        runs = [first] + [replace(r, changes={**r.changes, **one}) for r in runs[1:]]
+    if scene["mesh"]["accuracy"] is not None:  # every case on one mesh: one_mesh_runs
+        runs, meshes = one_mesh_runs(
+            runs, out, lambda rs: run_study(study_of(rs), out, processes=processes,
+                                            progress=progress, report=False, one_mesh=False),
+            primary=lambda r: r.set == "systole", group=lambda r: "", label=lambda r: r.case)
+        mesh = meshes[""]
         if progress:
             import sys
 
             sys.stderr.write(mesh_line(mesh) + "\n")
     study = study_of(runs)
-    res = run_study(study, out, processes=processes, progress=progress, report=False)
+    res = run_study(study, out, processes=processes, progress=progress, report=False,
+                    one_mesh=False)
     titles = {c[0]: c[1] for c in cases}
     rows = _rows(study, out, titles)
     files = [_write_csv(rows, out / "comparison.csv")]
@@ -299,34 +304,6 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
               if p is not None]
     return {"rows": rows, "files": files, "counts": res, "mesh": mesh,
             "moving": [name for name, _t, _c in cases if built[name]["motion"]]}
-
-
-def _chosen_mesh(d: Path, base) -> dict:
-    """The mesh every case of a comparison under ``mesh.accuracy`` closes on: where the
-    unrepaired valve's systolic run (in ``d``) stopped refining (summary.json ``accuracy``),
-    or, where that run left no such record (it failed), the most refinements the scene
-    allows."""
-    acc = (_summary(d) or {}).get("accuracy")
-    target, cap = float(base["mesh"]["accuracy"]), int(base["mesh"]["refine"])
-    if acc:
-        return {"target_mm": target, "refine": int(acc["refine"]), "most_refine": cap,
-                "moved_mm": acc.get("moved_mm"), "met": bool(acc.get("met")),
-                "chosen_by": "unrepaired"}
-    return {"target_mm": target, "refine": cap, "most_refine": cap, "moved_mm": None,
-            "met": False, "chosen_by": "mesh.refine"}
-
-
-def mesh_line(mesh: dict) -> str:
-    """The line saying which mesh a comparison under ``mesh.accuracy`` runs every case on."""
-    if mesh["chosen_by"] == "unrepaired":
-        moved = (f", its last refinement moved the closure {mesh['moved_mm']:.3g} mm"
-                 if mesh["moved_mm"] is not None else "")
-        met = "met" if mesh["met"] else "NOT met"
-        return (f"mesh.accuracy {mesh['target_mm']:g} mm ({met}): the unrepaired valve closed "
-                f"refined {mesh['refine']} time(s){moved}; every other run is on that mesh")
-    return (f"mesh.accuracy {mesh['target_mm']:g} mm: the unrepaired valve's run left no "
-            f"accuracy record; every other run is refined {mesh['refine']} time(s) "
-            "(mesh.refine)")
 
 
 # --------------------------------------------------------------------------- table

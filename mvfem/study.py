@@ -32,6 +32,10 @@ its ``status.json`` with the reason and is not repeated unless ``retry_failed``.
 run again picks up the runs that did not finish. ``results.csv`` (one row per run) is rebuilt
 from the per-run files after every finished run, the figures and ``report.html`` at the end,
 each written atomically.
+
+A case whose scene asks for ``mesh.accuracy`` has its sets closed on one mesh, the one its set
+needing the most refinements needs (:func:`one_mesh_runs`): parameter sets compared on
+meshes of their own would carry the meshes' differences.
 """
 
 from __future__ import annotations
@@ -56,7 +60,8 @@ from mvfem.errors import InputError
 from mvfem.relaunch import RETRIES, WITHIN_S
 from mvfem.scene import read_toml
 
-__all__ = ["Study", "Case", "RunSpec", "load_study", "run_study", "collect_results",
+__all__ = ["Study", "Case", "RunSpec", "load_study", "run_study", "one_mesh_runs",
+           "mesh_line", "collect_results",
            "write_results_csv", "default_sets", "default_processes", "RESULT_COLUMNS",
            "LEAFLETS", "PERCENTILE_NAMES"]
 
@@ -511,9 +516,92 @@ class _Progress:
         self.bar_shown = True
 
 
+def _at(spec: RunSpec, refine: int) -> RunSpec:
+    """``spec`` on the mesh refined ``refine`` times, without a target of its own (after its
+    other keys: a repair that sets the mesh is compared on the common one all the same)."""
+    from dataclasses import replace
+
+    return replace(spec, changes={**spec.changes, "mesh.refine": int(refine),
+                                  "mesh.accuracy": False})
+
+
+def one_mesh_runs(runs: list, out: Path, run, primary=lambda r: True, group=lambda r: r.case,
+             label=lambda r: r.set) -> tuple[list, dict]:
+    """Runs that ask for ``mesh.accuracy``, each group of them on one mesh: the mesh the run
+    needing the most refinements needs (README "One mesh for every case").
+
+    A group's target and most refinements are its first primary run's scene's. Each primary
+    run of a group with a target runs first (``run``: the study runner over some runs), to the
+    accuracy, and stops where its own last refinement moved its closure by at most the target
+    (summary.json ``accuracy``). The most refinements a group's primary runs needed is its
+    mesh: the primary runs that stopped coarser run again on it, and its other runs run on it,
+    all without a target of their own (:func:`_at`). A run made again keeps its directory; on
+    a resumed study it is recognised by its run.json (:func:`run_state`), not run to the
+    accuracy again. A run that left no accuracy record (it failed) counts as needing the most
+    refinements its scene allows (``mesh.refine``) and runs again on the group's mesh.
+
+    Args:
+        runs: :class:`RunSpec` list.
+        out: the study directory.
+        run: called with a list of runs: runs them (the study runner).
+        primary: which runs choose the mesh (a comparison: the systoles; a study: all).
+        group: runs of one key share a mesh (a comparison: all; a study: each case's sets).
+        label: a run's name in the record's ``needed``.
+
+    Returns:
+        The runs as they are to run, and per group with a target its record: ``target_mm``,
+        ``refine``, ``most_refine``, ``needed`` (label -> refinements; None for a run made
+        again on the mesh before, whose own need is not known).
+    """
+    from mvfem.scene import load_scene
+
+    targets = {}
+    for r in runs:
+        if primary(r) and group(r) not in targets:
+            mesh = load_scene(r.scene).with_changes(r.changes)["mesh"]
+            targets[group(r)] = (mesh["accuracy"], int(mesh["refine"]))
+    groups = {g for g, (target, _) in targets.items() if target is not None}
+    if not groups:
+        return runs, {}
+    chosen = [r for r in runs if primary(r) and group(r) in groups]
+    again = {}  # id -> the refinements of a run made again on its group's mesh before
+    for r in chosen:
+        k = ((_read_json(r.dir(out) / "run.json") or {}).get("changes") or {}).get("mesh.refine")
+        if isinstance(k, int) and run_state(_at(r, k), out) == "done":
+            again[id(r)] = k
+    first = [r for r in chosen if id(r) not in again]
+    if first:
+        run(first)
+    closed = {}  # id -> where its run to the accuracy stopped
+    for r in first:
+        acc = (_read_json(r.dir(out) / "summary.json") or {}).get("accuracy")
+        if acc:
+            closed[id(r)] = int(acc["refine"])
+    records = {}
+    for g in sorted(groups, key=str):
+        mine = [r for r in chosen if group(r) == g]
+        needed = {id(r): again.get(id(r), closed.get(id(r), targets[g][1])) for r in mine}
+        records[g] = {"target_mm": float(targets[g][0]), "refine": max(needed.values()),
+                      "most_refine": targets[g][1],
+                      "needed": {label(r): None if id(r) in again else needed[id(r)]
+                                 for r in mine}}
+    kept = {id(r) for r in first if closed.get(id(r)) == records[group(r)]["refine"]}
+    return [r if group(r) not in groups or id(r) in kept else
+            _at(r, records[group(r)]["refine"]) for r in runs], records
+
+
+def mesh_line(record: dict, what: str = "") -> str:
+    """The line saying which mesh runs that ask for ``mesh.accuracy`` share (a record of
+    :func:`one_mesh_runs`); ``what`` names the group."""
+    needed = ", ".join(f"{k} {'-' if v is None else v}" for k, v in record["needed"].items())
+    return (f"mesh.accuracy {record['target_mm']:g} mm{what}: refinements each run needed: "
+            f"{needed}; every run is on the mesh refined {record['refine']} time(s) "
+            "(mesh move: each run's last refinement there)")
+
+
 def run_study(study: Study | str | Path | dict, out: str | Path, processes: int | None = None,
               retry_failed: bool = False, progress: bool = True, report: bool = True,
-              cpus: set[int] | None = None) -> dict:
+              cpus: set[int] | None = None, one_mesh: bool = True) -> dict:
     """Run every (case, set) of ``study`` not yet finished in ``out``; then results.csv, the
     figures and report.html.
 
@@ -527,10 +615,14 @@ def run_study(study: Study | str | Path | dict, out: str | Path, processes: int 
         report: write the figures and report.html at the end.
         cpus: the CPUs the runs may use (default: this process's); a script under mpirun,
             whose ranks are bound to one core each, passes the union of its ranks'.
+        one_mesh: the sets of a case whose scene asks for ``mesh.accuracy`` all close on
+            one mesh, the one the set needing the most refinements needs
+            (:func:`one_mesh_runs`; those runs first); False runs the runs as they are.
 
     Returns:
         A dict: counts per status (converged, stopped, failed, pending), ``ran`` (runs made
-        now), ``skipped`` (finished before), ``results`` (results.csv), ``report``, ``figures``.
+        now), ``skipped`` (finished before), ``results`` (results.csv), ``report``, ``figures``,
+        ``meshes`` (per case under ``mesh.accuracy``, its mesh's record: :func:`one_mesh_runs`).
 
     Raises:
         InputError: bad study or output directory, or another study running in ``out``.
@@ -543,6 +635,17 @@ def run_study(study: Study | str | Path | dict, out: str | Path, processes: int 
     if processes < 1:
         raise InputError(f"--processes: must be at least 1, got {processes}")
     out = prepare_out(out).resolve()
+    meshes = {}
+    if one_mesh:  # (before this call's lock: the first runs are a call of their own)
+        from dataclasses import replace
+
+        runs, meshes = one_mesh_runs(study.runs, out, lambda rs: run_study(
+            replace(study, runs=rs), out, processes=processes, retry_failed=retry_failed,
+            progress=progress, report=False, cpus=cpus, one_mesh=False))
+        study = replace(study, runs=runs)
+        for case, record in meshes.items():
+            if progress:
+                sys.stderr.write(mesh_line(record, f" ({case})") + "\n")
     try:
         study_lock = _Lock(out / ".study.lock")
     except BlockingIOError:
@@ -572,7 +675,8 @@ def run_study(study: Study | str | Path | dict, out: str | Path, processes: int 
         result = {k: sum(r["status"] == k for r in rows)
                   for k in ("converged", "stopped", "failed", "pending")}
         result.update({"runs": total, "ran": ran, "skipped": skipped,
-                       "results": out / "results.csv", "report": None, "figures": []})
+                       "results": out / "results.csv", "report": None, "figures": [],
+                       "meshes": meshes})
         if report:
             from mvfem.report import build_report
 

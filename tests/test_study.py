@@ -503,3 +503,56 @@ def test_results_carry_a_refined_runs_mesh_move(tmp_path):
     assert (fine["mesh_move_mean_mm"], fine["mesh_move_p95_mm"]) == (0.03, 0.07)
     assert plain["mesh_move_mean_mm"] is None and plain["mesh_move_p95_mm"] is None
     assert fine["coaptation_length_mm"] == 7.0 and fine["status"] == "converged"
+
+
+def test_study_under_accuracy_runs_each_cases_sets_on_one_mesh(tmp_path, monkeypatch):
+    """A study whose cases ask for ``mesh.accuracy``: each case's sets first run to the
+    accuracy; the most refinements any set of a case needed is that case's mesh, on which the
+    sets that stopped coarser run again without a target; a case without a target runs as
+    it is. Run again (resumed), nothing runs. The runs themselves are a stand-in (the files a
+    run writes: set CP01 needs one refinement, MNY-mean two on case "a", one on case "b")."""
+    import mvfem.study
+    from mvfem.study import _spec_record, run_state
+
+    needs = {("a", "CP01"): 1, ("a", "MNY-mean"): 2, ("b", "CP01"): 1, ("b", "MNY-mean"): 1}
+    ran = []
+
+    def schedule(study, out, todo, processes, prog, skipped, total, cpus):
+        for r in todo:
+            assert run_state(r, out) != "done"
+            acc = r.changes.get("mesh.accuracy")
+            refine = needs.get((r.case, r.set), 0) if acc else r.changes.get("mesh.refine", 0)
+            ran.append((r.key, acc, refine))
+            d = r.dir(out)
+            d.mkdir(parents=True, exist_ok=True)
+            summary = {"converged": True, "cells": 100 * 4 ** refine}
+            if acc:
+                summary["accuracy"] = {"target_mm": acc, "refine": refine, "most_refine": 2,
+                                       "moved_mm": 0.01, "met": True}
+            (d / "summary.json").write_text(json.dumps(summary))
+            (d / "run.json").write_text(json.dumps(_spec_record(r)))
+        return len(todo)
+
+    monkeypatch.setattr(mvfem.study, "_schedule", schedule)
+    acc = {"mesh.size": 7.0, "mesh.refine": 2, "mesh.accuracy": 0.05}
+    spec = {"sets": ["CP01", "MNY-mean"], "biaxial": False,
+            "case": [{"name": "a", "scene": "demo", "set": acc},
+                     {"name": "b", "scene": "demo", "set": acc},
+                     {"name": "c", "scene": "demo", "set": {"mesh.size": 7.0}}]}
+    res = run_study(spec, tmp_path / "st", progress=False, report=False)
+    first = [k for k, a, _ in ran if a]
+    assert sorted(first) == ["a/CP01", "a/MNY-mean", "b/CP01", "b/MNY-mean"]
+    assert sorted(k for k, a, _ in ran if not a) == ["a/CP01", "c/CP01", "c/MNY-mean"]
+    assert ("a/CP01", False, 2) in ran  # (again, on case a's mesh)
+    assert res["meshes"] == {
+        "a": {"target_mm": 0.05, "refine": 2, "most_refine": 2,
+              "needed": {"CP01": 1, "MNY-mean": 2}},
+        "b": {"target_mm": 0.05, "refine": 1, "most_refine": 2,
+              "needed": {"CP01": 1, "MNY-mean": 1}}}
+    rows = {(r["case"], r["set"]): r for r in
+            csv.DictReader((tmp_path / "st" / "results.csv").open())}
+    assert [rows[("a", s)]["cells"] for s in ("CP01", "MNY-mean")] == ["1600", "1600"]
+    assert [rows[("b", s)]["cells"] for s in ("CP01", "MNY-mean")] == ["400", "400"]
+    ran.clear()
+    again = run_study(spec, tmp_path / "st", progress=False, report=False)
+    assert ran == [] and again["meshes"]["a"]["refine"] == 2
