@@ -317,9 +317,21 @@ def _view_axis(surface, x):
     return axis, vt[1] if abs(vt[1] @ axis) < 0.9 else vt[0]
 
 
+def nodal_average(tri: np.ndarray, facet: np.ndarray, n: int) -> np.ndarray:
+    """Per-node values from per-facet ones: the mean over each node's facets weighted by their
+    count (uniform here: each facet once per corner); 0 at a node of no facet."""
+    tri = np.asarray(tri, dtype=np.int64)
+    total = np.bincount(tri.ravel(), weights=np.repeat(np.asarray(facet, float), 3), minlength=n)
+    count = np.bincount(tri.ravel(), minlength=n)
+    return np.divide(total, count, out=np.zeros(n), where=count > 0)
+
+
 def distance_map(x, tri, facet_mm, axis, up, path, title: str,
-                 label: str = "distance to the reference surface, mm") -> Path:
-    """PNG map of the per-facet distance, seen along ``-axis`` (the atrium for valves)."""
+                 label: str = "distance to the reference surface, mm",
+                 smooth: bool = False) -> Path:
+    """PNG map of the per-facet distance, seen along ``-axis`` (the atrium for valves).
+    ``smooth``: each node coloured by the mean of its facets' values, shaded across the
+    facets (Gouraud), instead of each facet by its own value."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -332,10 +344,15 @@ def distance_map(x, tri, facet_mm, axis, up, path, title: str,
     order = np.argsort(((x - c) @ axis)[tri].mean(axis=1))
     hi = float(np.percentile(facet_mm, 95)) if len(facet_mm) else 1.0
     fig, ax = plt.subplots(figsize=(6, 5.2), dpi=120)
-    pc = PolyCollection(p2[tri[order]], array=facet_mm[order], cmap="magma_r",
-                        edgecolors="face", linewidths=0.1)
-    pc.set_clim(0.0, hi if hi > 0 else 1e-9)
-    ax.add_collection(pc)
+    if smooth:  # (the triangles drawn in depth order, the nearest last, as the facets are)
+        nodal = nodal_average(tri, facet_mm, len(x))
+        pc = ax.tripcolor(p2[:, 0], p2[:, 1], tri[order], nodal, shading="gouraud",
+                          cmap="magma_r", vmin=0.0, vmax=hi if hi > 0 else 1e-9)
+    else:
+        pc = PolyCollection(p2[tri[order]], array=facet_mm[order], cmap="magma_r",
+                            edgecolors="face", linewidths=0.1)
+        pc.set_clim(0.0, hi if hi > 0 else 1e-9)
+        ax.add_collection(pc)
     ax.autoscale_view()
     ax.set_aspect("equal")
     ax.set_xlabel("mm")
@@ -435,8 +452,12 @@ def level_change(finer, coarser) -> tuple[dict, np.ndarray]:
 
 def level_change_map(surface, finer, facet_mm, block: dict, cells: tuple[int, int],
                      path) -> Path:
-    """``map_level_change.png``: the finer closure's facets coloured by their distance to the
-    coarser closure (:func:`level_change`), seen as the other maps are."""
+    """``map_level_change.png``: the finer closure coloured by its distance to the coarser
+    closure (:func:`level_change`), seen as the other maps are: each node by the mean of its
+    facets' distances, shaded across the facets. Facet by facet the map alternated: a nested
+    level's new nodes (its coarser edges' midpoints) move further than the coarser nodes, so
+    the facets at a coarser node and those between them differ (README "Each refined run
+    measures its own mesh error")."""
     x, tri, _ = finer
     axis, up = _view_axis(surface, x)
     return distance_map(
@@ -444,4 +465,5 @@ def level_change_map(surface, finer, facet_mm, block: dict, cells: tuple[int, in
         f"closure moved by the last refinement ({cells[0]} -> {cells[1]} cells)\n"
         f"mean {block['mean_mm']:.3g}, p95 {block['p95_mm']:.3g}, max "
         f"{block['hausdorff_mm']:.3g} mm; colours 0 - 95th percentile",
-        label="distance to the coarser level's closure, mm")
+        label="distance to the coarser closure, mm (a node: its facets' mean)",
+        smooth=True)

@@ -351,3 +351,20 @@ def test_bad_reference_is_one_line_exit_2(tmp_path, flat_disk, capsys, table, wo
         assert w in err
     assert str(scene) in err
     assert not out.exists()
+
+
+def test_nodal_average_of_facet_values():
+    """``nodal_average`` (the level map's node colours): on a fan of four triangles around
+    node 0 and a lone node, each node gets the mean of its facets' values, written out by
+    hand; the lone node 0. A linear field's facet means averaged back to an interior node of
+    a symmetric fan give the node's own value."""
+    from mvfem.distance import nodal_average
+
+    tri = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 1]])
+    facet = np.array([1.0, 2.0, 3.0, 6.0])
+    got = nodal_average(tri, facet, 6)
+    want = [3.0, (1 + 6) / 2, (1 + 2) / 2, (2 + 3) / 2, (3 + 6) / 2, 0.0]
+    assert got == pytest.approx(want, abs=1e-15)
+    x = np.array([[0, 0], [1, 0], [0, 1], [-1, 0], [0, -1]], dtype=float)
+    f = 2.0 + 3.0 * x[:, 0] - 5.0 * x[:, 1]
+    assert nodal_average(tri, f[tri].mean(axis=1), 5)[0] == pytest.approx(f[0], abs=1e-14)
