@@ -43,7 +43,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["transfer", "transfer_nodes", "unfold", "START_CAP", "START_WEIGHT", "SCALES",
-           "UNFOLD_SWEEPS"]
+           "UNFOLD_SWEEPS", "CRUSHED_AREA", "crushed_cells"]
 
 #: the Fung laws' exponent cap while a transferred state relaxes
 START_CAP = 10.0
@@ -59,6 +59,15 @@ SCALES = (0.9, 0.8, 0.7)
 #: unfolded in 2 sweeps took 1180 steps, against 196 from the open state, where its scaled
 #: state is refused (README, "Nested levels")
 UNFOLD_SWEEPS = 10
+#: a transferred state with a cell squeezed below this fraction of its reference area is not
+#: used (:func:`transfer`): the plane-stress laws' thickness stretch ``1 / J`` of a sliver
+#: overflows the capped exponent. The P2 resection with the 36 mm ring at 3 mm refined twice:
+#: its new nodes put on the coarse closed surface near the sutured cut made 5 slivers (areas
+#: down to 4e-15 of their reference), the smoothing of its 4 crossing edges kept them, and
+#: the finest level sat at 1e26-1e32 x the load for 1500 steps (exponent 1.6e31); the
+#: smoothed state with the offsets, the next tried, has 0.054 at least (README "Nested
+#: levels", session 51)
+CRUSHED_AREA = 0.01
 
 
 def transfer_nodes(Xc: np.ndarray, cells_c: np.ndarray, Uc: np.ndarray, Xf: np.ndarray,
@@ -153,6 +162,16 @@ def unfold(X: np.ndarray, cells: np.ndarray, free: np.ndarray, U: np.ndarray,
     return None, sweeps
 
 
+def crushed_cells(X: np.ndarray, cells: np.ndarray, U: np.ndarray,
+                  below: float = CRUSHED_AREA) -> int:
+    """How many triangles of the displaced mesh ``X + U`` have less than ``below`` x their
+    reference area (slivers, flipped or not: the area is unsigned)."""
+    def area(P):
+        return np.linalg.norm(np.cross(P[cells[:, 1]] - P[cells[:, 0]],
+                                       P[cells[:, 2]] - P[cells[:, 0]]), axis=1)
+    return int(np.count_nonzero(area(X + U) < below * area(X)))
+
+
 def transfer(coarse, fine, scales=SCALES, sweeps: int = 0, clamp: np.ndarray | None = None
              ) -> dict:
     """Set ``fine.u`` (a :class:`mvfem.model.Model`) to the closed state of ``coarse`` (a
@@ -162,9 +181,12 @@ def transfer(coarse, fine, scales=SCALES, sweeps: int = 0, clamp: np.ndarray | N
 
     Where the moved state crosses with the offsets and without, the one without is smoothed
     where it crosses (:func:`unfold`, at most ``sweeps`` sweeps within the contact's
-    exclusion of the crossing: ``unfolded`` the sweeps it took; nested levels), else scaled
-    by the first of ``scales`` whose state does not cross (``scale``; ``crossings`` the
-    moved state's count in either case). A coarse closure can pass through itself at a fold
+    exclusion of the crossing: ``unfolded`` the sweeps it took; nested levels), then the one
+    with them, else scaled by the first of ``scales`` whose state does not cross (the one
+    without the offsets first; ``scale``; ``crossings`` the moved state's count in every
+    case). No state with a cell squeezed below ``CRUSHED_AREA`` of its reference area is used
+    (:func:`crushed_cells`; ``crushed``: how many such cells the states passed over had at
+    most). A coarse closure can pass through itself at a fold
     within the contact's exclusion (an edge through a triangle of the same leaflet with an
     end within 1 mm of it in the reference surface: not a contact pair there, so neither
     pushed apart nor counted); split, the fine edges' ends are beyond it, and the fine level
@@ -191,34 +213,62 @@ def transfer(coarse, fine, scales=SCALES, sweeps: int = 0, clamp: np.ndarray | N
         def crossings(U):
             return fine.contact.intersections(fv.X + U)[1] if fine.contact is not None else 0
 
+        worst = 0  # the most crushed cells of a state passed over
+
+        def usable(U) -> bool:
+            nonlocal worst
+            n = crushed_cells(fv.X, fv.cells, U)
+            worst = max(worst, n)
+            return n == 0
+
+        moved = []  # (offsets, state, its crossing edges), with the offsets first
+        found = False
         for offsets in (True, False):
             Uf, dist = transfer_nodes(cv.X, cv.cells, Uc, fv.X, offsets=offsets)
             # the clamp: zero, or the prescribed motion's values
             Uf[~fv.free] = 0.0 if clamp is None else clamp[~fv.free]
             crossing = crossings(Uf)
-            if not crossing:
+            moved.append((offsets, Uf, crossing))
+            found = not crossing and usable(Uf)
+            if found:
                 break
-        out = {"used": not crossing, "offsets": offsets, "scale": 1.0, "reason": "",
+        out = {"used": found, "offsets": offsets, "scale": 1.0, "reason": "",
                "max_distance_mm": float(dist.max(initial=0.0))}
+        crossing = max(c for _, _, c in moved)
         if crossing:
             out["crossings"] = crossing
-            if sweeps > 0 and fine.contact is not None:
-                smooth, k = unfold(fv.X, fv.cells, fv.free, Uf, fine.contact.crossing_nodes(
-                    fv.X + Uf), fine.contact.exclusion, crossings, sweeps)
-                if smooth is not None:
+        tries = moved[::-1]  # (the one without the offsets first, as before session 51)
+        if not out["used"] and sweeps > 0 and fine.contact is not None:
+            for offsets, U, c in tries:
+                if not c:
+                    continue
+                smooth, k = unfold(fv.X, fv.cells, fv.free, U, fine.contact.crossing_nodes(
+                    fv.X + U), fine.contact.exclusion, crossings, sweeps)
+                if smooth is not None and usable(smooth):
                     Uf = smooth
-                    out.update(used=True, unfolded=k)
-        if crossing and not out["used"]:
-            for scale in scales:
-                scaled = np.where(fv.free, scale * Uf, Uf)   # (the clamp's values kept)
-                if not crossings(scaled):
-                    Uf = scaled
-                    out.update(used=True, scale=float(scale))
+                    out.update(used=True, unfolded=k, offsets=offsets)
                     break
         if not out["used"]:
+            for offsets, U, _ in tries:
+                for scale in scales:
+                    scaled = np.where(fv.free, scale * U, U)   # (the clamp's values kept)
+                    if not crossings(scaled) and usable(scaled):
+                        Uf = scaled
+                        out.update(used=True, scale=float(scale), offsets=offsets)
+                        break
+                if out["used"]:
+                    break
+        if worst:
+            out["crushed"] = worst
+        if not out["used"]:
             least = f" (and scaled by {min(scales):g})" if len(scales) else ""
-            out["reason"] = (f"{crossing} edge(s) of the transferred state cross a triangle, "
-                             f"with the offsets from the coarse surface and without{least}")
+            why = (f"{crossing} edge(s) of the transferred state cross a triangle"
+                   if crossing else "")
+            if worst:
+                why += (" and " if why else "") + (f"{worst} cell(s) squeezed below "
+                                                   f"{CRUSHED_AREA:g} of their area")
+            out["reason"] = (f"{why}, with the offsets from the coarse surface and "
+                             f"without{least}")
     out = comm.bcast(out, root=0)
     if not out["used"]:
         return out

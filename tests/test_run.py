@@ -1106,6 +1106,82 @@ def test_nested_transfer_unfolds_a_crossing_in_place():
     assert change[near].max() > 0 and 0 < change.max() < 1.0
 
 
+def test_crushed_cells_counts_slivers():
+    """``sequence.crushed_cells``: two unit right triangles; the second squeezed by moving a
+    corner onto the line of the other two (area 0), then to 0.5 % and 2 % of its area: one,
+    one and no cell below 1 %; a flipped triangle of full area is not crushed."""
+    from mvfem.sequence import CRUSHED_AREA, crushed_cells
+
+    X = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], dtype=float)
+    cells = np.array([[0, 1, 2], [1, 3, 2]])
+    U = np.zeros_like(X)
+    assert crushed_cells(X, cells, U) == 0
+    for frac, count in ((0.0, 1), (0.005, 1), (0.02, 0)):
+        U[3] = (1 - frac) * ((X[1] + X[2]) / 2 - X[3])
+        assert crushed_cells(X, cells, U) == count, frac
+    U[3] = 2 * ((X[1] + X[2]) / 2 - X[3])  # (through the diagonal: flipped, the same area)
+    assert crushed_cells(X, cells, U) == 0 and CRUSHED_AREA == 0.01
+
+
+def test_transfer_passes_over_a_state_with_crushed_cells(monkeypatch):
+    """``transfer`` uses no moved state with a sliver in it (session 51: the resected valve
+    with a ring, refined twice, started its finest level from such a state and sat at 1e26
+    x the load for 1500 steps). On the open 7 mm demo moved onto itself, the two states are
+    stood in: with the offsets one node lifted 1 mm (counted as a crossing while it stands
+    0.2 mm above its neighbours' mean), without them a node moved onto its neighbour (two
+    slivers, no crossing). The state without the offsets, which the transfer took before, is
+    passed over; the one with them is smoothed where it "crosses" and taken (one sweep: the
+    lifted node at its neighbours' mean). Without slivers the state without the offsets is
+    taken, as before; with no way out (no sweeps, no scales) the transfer refuses, saying
+    why."""
+    import mvfem.sequence as seq
+    from mvfem.model import build_model
+    from mvfem.scene import load_scene
+
+    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    scene = scene.with_changes({"mesh.size": 7.0})
+    coarse = build_model(scene, MPI.COMM_WORLD)
+    fine = build_model(scene, MPI.COMM_WORLD)
+    fv = fine.view
+    inner = np.flatnonzero(fv.free.all(axis=1))
+    k, j = inner[len(inner) // 2], inner[len(inner) // 3]
+    nbr = fv.cells[(fv.cells == j).any(axis=1)]
+    other = int(next(n for n in nbr.ravel() if n != j and fv.free[n].all()))
+    lifted = np.zeros_like(fv.X)
+    lifted[k, 2] = 1.0
+    squeezed = np.zeros_like(fv.X)
+    squeezed[j] = fv.X[other] - fv.X[j]
+    assert seq.crushed_cells(fv.X, fv.cells, squeezed) >= 2
+
+    def lift(x):  # node k's height above its neighbours' mean
+        ring = np.unique(fv.cells[(fv.cells == k).any(axis=1)])
+        ring = ring[ring != k]
+        return x[k, 2] - x[ring, 2].mean()
+
+    monkeypatch.setattr(fine.contact, "intersections",
+                        lambda x: (0.0, int(lift(x) > 0.2)))
+    monkeypatch.setattr(fine.contact, "crossing_nodes", lambda x: np.array([k]))
+    states = {True: lifted, False: squeezed}
+    monkeypatch.setattr(seq, "transfer_nodes", lambda Xc, cc, Uc, Xf, offsets=True: (
+        states[offsets].copy(), np.zeros(len(Xf))))
+
+    def u():
+        return fine.u.x.array.reshape(-1, 3)[:len(fv.X)]
+
+    out = seq.transfer(coarse, fine, sweeps=seq.UNFOLD_SWEEPS)
+    assert out["used"] and out["offsets"] and out["unfolded"] == 1 and out["crushed"] >= 2
+    assert abs(lift(fv.X + u())) < 1e-12 and np.abs(u()[j]).max() == 0.0
+    states[False] = np.zeros_like(fv.X)  # (no sliver: taken, as before)
+    fine.u.x.array[:] = 0.0
+    out = seq.transfer(coarse, fine, sweeps=seq.UNFOLD_SWEEPS)
+    assert out["used"] and not out["offsets"] and "crushed" not in out
+    states[False] = squeezed
+    fine.u.x.array[:] = 0.0
+    out = seq.transfer(coarse, fine, sweeps=0, scales=())
+    assert not out["used"] and "squeezed below 0.01 of their area" in out["reason"]
+    assert np.abs(fine.u.x.array).max() == 0.0
+
+
 def _spy_transfer(monkeypatch) -> list:
     """The ``sweeps`` each call of ``sequence.transfer`` gets (nested levels smooth a crossing
     away, ``solver.coarse_start`` does not: README, "A crossing smoothed in place")."""
