@@ -120,6 +120,8 @@ def _accuracy(path, v):
     if v is True:
         raise _Bad(path, "expected a length (mm) or false, got True")
     return _length(path, v)
+
+
 _pressure_any = _quantity(PRESSURE, "Pa", positive=False)
 
 

@@ -234,7 +234,8 @@ def transfer(coarse, fine, scales=SCALES, sweeps: int = 0, clamp: np.ndarray | N
                 break
         out = {"used": found, "offsets": offsets, "scale": 1.0, "reason": "",
                "max_distance_mm": float(dist.max(initial=0.0))}
-        crossing = max(c for _, _, c in moved)
+        # (the last moved state's count that crosses: the one without the offsets where both do)
+        crossing = 0 if found else next((c for _, _, c in moved[::-1] if c), 0)
         if crossing:
             out["crossings"] = crossing
         tries = moved[::-1]  # (the one without the offsets first, as before session 51)

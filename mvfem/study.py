@@ -525,8 +525,8 @@ def _at(spec: RunSpec, refine: int) -> RunSpec:
                                   "mesh.accuracy": False})
 
 
-def one_mesh_runs(runs: list, out: Path, run, primary=lambda r: True, group=lambda r: r.case,
-             label=lambda r: r.set) -> tuple[list, dict]:
+def one_mesh_runs(runs: list, out: Path, run, primary=lambda r: True,
+                  group=lambda r: r.case, label=lambda r: r.set) -> tuple[list, dict]:
     """Runs that ask for ``mesh.accuracy``, each group of them on one mesh: the mesh the run
     needing the most refinements needs (README "One mesh for every case").
 
@@ -537,7 +537,8 @@ def one_mesh_runs(runs: list, out: Path, run, primary=lambda r: True, group=lamb
     mesh: the primary runs that stopped coarser run again on it, and its other runs run on it,
     all without a target of their own (:func:`_at`). A run made again keeps its directory; on
     a resumed study it is recognised by its run.json (:func:`run_state`), not run to the
-    accuracy again. A run that left no accuracy record (it failed) counts as needing the most
+    accuracy again (resumed with another target, such a run keeps its mesh as a lower bound
+    of the group's: the common mesh stays one mesh, if finer than the new target needs). A run that left no accuracy record (it failed) counts as needing the most
     refinements its scene allows (``mesh.refine``) and runs again on the group's mesh.
 
     Args:
