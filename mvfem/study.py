@@ -552,7 +552,8 @@ def one_mesh_runs(runs: list, out: Path, run, primary=lambda r: True,
     Returns:
         The runs as they are to run, and per group with a target its record: ``target_mm``,
         ``refine``, ``most_refine``, ``needed`` (label -> refinements; None for a run made
-        again on the mesh before, whose own need is not known).
+        again on the mesh before, whose own need is not known), ``not_met`` (the labels of the
+        runs that missed the target at the most refinements allowed, or stopped short).
     """
     from mvfem.scene import load_scene
 
@@ -573,11 +574,13 @@ def one_mesh_runs(runs: list, out: Path, run, primary=lambda r: True,
     first = [r for r in chosen if id(r) not in again]
     if first:
         run(first)
-    closed = {}  # id -> where its run to the accuracy stopped
+    closed, short = {}, set()  # id -> where its run to the accuracy stopped; target missed
     for r in first:
         acc = (_read_json(r.dir(out) / "summary.json") or {}).get("accuracy")
         if acc:
             closed[id(r)] = int(acc["refine"])
+            if not acc.get("met"):
+                short.add(id(r))
     records = {}
     for g in sorted(groups, key=str):
         mine = [r for r in chosen if group(r) == g]
@@ -585,7 +588,8 @@ def one_mesh_runs(runs: list, out: Path, run, primary=lambda r: True,
         records[g] = {"target_mm": float(targets[g][0]), "refine": max(needed.values()),
                       "most_refine": targets[g][1],
                       "needed": {label(r): None if id(r) in again else needed[id(r)]
-                                 for r in mine}}
+                                 for r in mine},
+                      "not_met": [label(r) for r in mine if id(r) in short]}
     kept = {id(r) for r in first if closed.get(id(r)) == records[group(r)]["refine"]}
     return [r if group(r) not in groups or id(r) in kept else
             _at(r, records[group(r)]["refine"]) for r in runs], records
@@ -595,9 +599,11 @@ def mesh_line(record: dict, what: str = "") -> str:
     """The line saying which mesh runs that ask for ``mesh.accuracy`` share (a record of
     :func:`one_mesh_runs`); ``what`` names the group."""
     needed = ", ".join(f"{k} {'-' if v is None else v}" for k, v in record["needed"].items())
+    short = record.get("not_met")
     return (f"mesh.accuracy {record['target_mm']:g} mm{what}: refinements each run needed: "
             f"{needed}; every run is on the mesh refined {record['refine']} time(s) "
-            "(mesh move: each run's last refinement there)")
+            "(mesh move: each run's last refinement there)"
+            + (f"; NOT met by {', '.join(short)}" if short else ""))
 
 
 def run_study(study: Study | str | Path | dict, out: str | Path, processes: int | None = None,

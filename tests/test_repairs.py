@@ -1006,7 +1006,7 @@ def test_repair_compare_under_accuracy_runs_every_case_on_one_mesh(tmp_path, mon
     for key, ch in every:
         assert ch["mesh.refine"] == most and ch["mesh.accuracy"] is False, key
     assert res["mesh"] == {"target_mm": 0.05, "refine": most, "most_refine": 2,
-                           "needed": needed}
+                           "needed": needed, "not_met": []}
     assert f"every run is on the mesh refined {most} time(s)" in mesh_line(res["mesh"])
     rows = list(csv.DictReader((tmp_path / "cmp" / "comparison.csv").open()))
     assert [int(r["mesh_cells"]) for r in rows] == [100 * 4 ** most] * 2

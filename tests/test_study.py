@@ -512,9 +512,10 @@ def test_study_under_accuracy_runs_each_cases_sets_on_one_mesh(tmp_path, monkeyp
     it is. Run again (resumed), nothing runs. The runs themselves are a stand-in (the files a
     run writes: set CP01 needs one refinement, MNY-mean two on case "a", one on case "b")."""
     import mvfem.study
-    from mvfem.study import _spec_record, run_state
+    from mvfem.study import _spec_record, mesh_line, run_state
 
     needs = {("a", "CP01"): 1, ("a", "MNY-mean"): 2, ("b", "CP01"): 1, ("b", "MNY-mean"): 1}
+    missed = {("a", "MNY-mean")}  # (its run to the accuracy ends at the cap, not met)
     ran = []
 
     def schedule(study, out, todo, processes, prog, skipped, total, cpus):
@@ -528,7 +529,7 @@ def test_study_under_accuracy_runs_each_cases_sets_on_one_mesh(tmp_path, monkeyp
             summary = {"converged": True, "cells": 100 * 4 ** refine}
             if acc:
                 summary["accuracy"] = {"target_mm": acc, "refine": refine, "most_refine": 2,
-                                       "moved_mm": 0.01, "met": True}
+                                       "moved_mm": 0.01, "met": (r.case, r.set) not in missed}
             (d / "summary.json").write_text(json.dumps(summary))
             (d / "run.json").write_text(json.dumps(_spec_record(r)))
         return len(todo)
@@ -546,9 +547,11 @@ def test_study_under_accuracy_runs_each_cases_sets_on_one_mesh(tmp_path, monkeyp
     assert ("a/CP01", False, 2) in ran  # (again, on case a's mesh)
     assert res["meshes"] == {
         "a": {"target_mm": 0.05, "refine": 2, "most_refine": 2,
-              "needed": {"CP01": 1, "MNY-mean": 2}},
+              "needed": {"CP01": 1, "MNY-mean": 2}, "not_met": ["MNY-mean"]},
         "b": {"target_mm": 0.05, "refine": 1, "most_refine": 2,
-              "needed": {"CP01": 1, "MNY-mean": 1}}}
+              "needed": {"CP01": 1, "MNY-mean": 1}, "not_met": []}}
+    assert mesh_line(res["meshes"]["a"], " (a)").endswith("; NOT met by MNY-mean")
+    assert "NOT met" not in mesh_line(res["meshes"]["b"])
     rows = {(r["case"], r["set"]): r for r in
             csv.DictReader((tmp_path / "st" / "results.csv").open())}
     assert [rows[("a", s)]["cells"] for s in ("CP01", "MNY-mean")] == ["1600", "1600"]
