@@ -218,8 +218,11 @@ def test_accuracy_refines_until_the_move_is_small_enough(tmp_path, monkeypatch):
         f"mesh.accuracy {target:g} mm: met refined 1 time(s)")
     # the level solved before counts in the wall time, as one solved within the run does
     # (the unrefined level is a quarter of the call here)
+    # (rank 0's: another rank's wall time ends with its share of the outputs, before rank 0
+    # draws the maps, which its call then waits for: 85 % of its call on a 2-core Zen 2)
     tt = t["timing"]
-    assert 0.9 * elapsed < t["wall_time_s"] <= elapsed
+    wall, took = comm.bcast((t["wall_time_s"], elapsed), root=0)
+    assert 0.9 * took < wall <= took
     assert tt["coarse_start_s"] > 0 and tt["other_s"] > 0
     assert tt["assembly_s"] + tt["linear_solve_s"] + tt["contact_s"] + tt["coarse_start_s"] + \
         tt["other_s"] == pytest.approx(t["wall_time_s"], rel=1e-12)
