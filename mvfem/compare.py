@@ -280,18 +280,16 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
                      source=str(scene_path))
 
     out = prepare_out(out).resolve()
-    mesh = None
-    scene = base.with_changes(changes) if changes else base
-    if scene["mesh"]["accuracy"] is not None:  # every case on one mesh: one_mesh_runs
-        runs, meshes = one_mesh_runs(
-            runs, out, lambda rs: run_study(study_of(rs), out, processes=processes,
-                                            progress=progress, report=False, one_mesh=False),
-            primary=lambda r: r.set == "systole", group=lambda r: "", label=lambda r: r.case)
-        mesh = meshes[""]
-        if progress:
-            import sys
+    # under mesh.accuracy every case on one mesh (nothing runs here without a target)
+    runs, meshes = one_mesh_runs(
+        runs, out, lambda rs: run_study(study_of(rs), out, processes=processes,
+                                        progress=progress, report=False, one_mesh=False),
+        primary=lambda r: r.set == "systole", group=lambda r: "", label=lambda r: r.case)
+    mesh = meshes.get("")
+    if mesh and progress:
+        import sys
 
-            sys.stderr.write(mesh_line(mesh) + "\n")
+        sys.stderr.write(mesh_line(mesh) + "\n")
     study = study_of(runs)
     res = run_study(study, out, processes=processes, progress=progress, report=False,
                     one_mesh=False)

@@ -318,8 +318,8 @@ def _view_axis(surface, x):
 
 
 def nodal_average(tri: np.ndarray, facet: np.ndarray, n: int) -> np.ndarray:
-    """Per-node values from per-facet ones: the mean over each node's facets weighted by their
-    count (uniform here: each facet once per corner); 0 at a node of no facet."""
+    """Per-node values from per-facet ones: each node's the plain mean of the values of the
+    facets it is a corner of; 0 at a node of no facet."""
     tri = np.asarray(tri, dtype=np.int64)
     total = np.bincount(tri.ravel(), weights=np.repeat(np.asarray(facet, float), 3), minlength=n)
     count = np.bincount(tri.ravel(), minlength=n)
