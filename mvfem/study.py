@@ -126,6 +126,10 @@ class RunSpec:
             (the ``region`` cell values of fields.h5 index this list).
         scene_sha256: of the scene file's text, so that an edited scene is a different run
             (code changes are not detected).
+        mesh_target_mm: a run made again on its group's mesh (:func:`one_mesh_runs`): the
+            ``mesh.accuracy`` target that chose that mesh, which its changes switch off, so
+            that a study resumed with another target does not take it for this run. Not
+            passed to the run; absent from run.json where None.
     """
 
     case: str
@@ -136,6 +140,7 @@ class RunSpec:
     changes: dict
     regions: list
     scene_sha256: str = ""
+    mesh_target_mm: float | None = None
 
     @property
     def key(self) -> str:
@@ -382,7 +387,10 @@ def _read_json(path: Path) -> dict | None:
 
 
 def _spec_record(spec: RunSpec) -> dict:
-    return json.loads(json.dumps(asdict(spec)))  # as it reads back from run.json
+    rec = asdict(spec)
+    if rec["mesh_target_mm"] is None:  # (the run.json of every other run, as before it)
+        del rec["mesh_target_mm"]
+    return json.loads(json.dumps(rec))  # as it reads back from run.json
 
 
 def run_state(spec: RunSpec, out: Path) -> str:
@@ -516,13 +524,14 @@ class _Progress:
         self.bar_shown = True
 
 
-def _at(spec: RunSpec, refine: int) -> RunSpec:
-    """``spec`` on the mesh refined ``refine`` times, without a target of its own (after its
-    other keys: a repair that sets the mesh is compared on the common one all the same)."""
+def _at(spec: RunSpec, refine: int, target: float) -> RunSpec:
+    """``spec`` on the mesh refined ``refine`` times, chosen for the accuracy ``target`` (mm),
+    without a target of its own (after its other keys: a repair that sets the mesh is compared
+    on the common one all the same)."""
     from dataclasses import replace
 
     return replace(spec, changes={**spec.changes, "mesh.refine": int(refine),
-                                  "mesh.accuracy": False})
+                                  "mesh.accuracy": False}, mesh_target_mm=float(target))
 
 
 def one_mesh_runs(runs: list, out: Path, run, primary=lambda r: True,
@@ -536,10 +545,11 @@ def one_mesh_runs(runs: list, out: Path, run, primary=lambda r: True,
     (summary.json ``accuracy``). The most refinements a group's primary runs needed is its
     mesh: the primary runs that stopped coarser run again on it, and its other runs run on it,
     all without a target of their own (:func:`_at`). A run made again keeps its directory; on
-    a resumed study it is recognised by its run.json (:func:`run_state`), not run to the
-    accuracy again (resumed with another target, such a run keeps its mesh as a lower bound
-    of the group's: the common mesh stays one mesh, if finer than the new target needs). A run that left no accuracy record (it failed) counts as needing the most
-    refinements its scene allows (``mesh.refine``) and runs again on the group's mesh.
+    a resumed study it is recognised by its run.json (:func:`run_state`, which records the
+    target that chose its mesh), not run to the accuracy again; resumed with another target,
+    it runs to the accuracy again like the others. A run that left no accuracy record (it
+    failed) counts as needing the most refinements its scene allows (``mesh.refine``) and
+    runs again on the group's mesh.
 
     Args:
         runs: :class:`RunSpec` list.
@@ -569,7 +579,7 @@ def one_mesh_runs(runs: list, out: Path, run, primary=lambda r: True,
     again = {}  # id -> the refinements of a run made again on its group's mesh before
     for r in chosen:
         k = ((_read_json(r.dir(out) / "run.json") or {}).get("changes") or {}).get("mesh.refine")
-        if isinstance(k, int) and run_state(_at(r, k), out) == "done":
+        if isinstance(k, int) and run_state(_at(r, k, targets[group(r)][0]), out) == "done":
             again[id(r)] = k
     first = [r for r in chosen if id(r) not in again]
     if first:
@@ -592,7 +602,8 @@ def one_mesh_runs(runs: list, out: Path, run, primary=lambda r: True,
                       "not_met": [label(r) for r in mine if id(r) in short]}
     kept = {id(r) for r in first if closed.get(id(r)) == records[group(r)]["refine"]}
     return [r if group(r) not in groups or id(r) in kept else
-            _at(r, records[group(r)]["refine"]) for r in runs], records
+            _at(r, records[group(r)]["refine"], records[group(r)]["target_mm"])
+            for r in runs], records
 
 
 def mesh_line(record: dict, what: str = "") -> str:

@@ -559,3 +559,16 @@ def test_study_under_accuracy_runs_each_cases_sets_on_one_mesh(tmp_path, monkeyp
     ran.clear()
     again = run_study(spec, tmp_path / "st", progress=False, report=False)
     assert ran == [] and again["meshes"]["a"]["refine"] == 2
+    # resumed with a looser target, by which case a's sets need 0 and 1 refinements: the set
+    # made again for the first target (CP01 at 2) is not taken for a run at the new one
+    needs.update({("a", "CP01"): 0, ("a", "MNY-mean"): 1})
+    missed.clear()
+    ran.clear()
+    acc["mesh.accuracy"] = 0.2
+    loose = run_study(spec, tmp_path / "st", progress=False, report=False)
+    assert loose["meshes"]["a"] == {"target_mm": 0.2, "refine": 1, "most_refine": 2,
+                                    "needed": {"CP01": 0, "MNY-mean": 1}, "not_met": []}
+    assert ("a/CP01", False, 1) in ran and ("a/CP01", 0.2, 0) in ran
+    assert ("a/MNY-mean", 0.2, 1) in ran
+    rows = {(r["case"], r["set"]): r for r in _rows(tmp_path / "st" / "results.csv")}
+    assert [rows[("a", s)]["cells"] for s in ("CP01", "MNY-mean")] == ["400", "400"]
