@@ -315,6 +315,7 @@ def _summary(d: Path) -> dict | None:
 
 
 def _rows(study, out: Path, titles: dict) -> list[dict]:
+    from mvfem.distance import last_move
     from mvfem.figures import read_fields
 
     rows = []
@@ -348,7 +349,7 @@ def _rows(study, out: Path, titles: dict) -> list[dict]:
                 row["chordae_force_max_N"] = ch.get("max")
                 row["neochord_force_total_N"] = (ch.get("neochord") or {}).get("total")
                 row["mesh_cells"] = (s or {}).get("cells")
-                moved = ((s or {}).get("coarse_start") or {}).get("distance_to_finer_mm")
+                moved = last_move(s)
                 if moved:
                     row["mesh_move_mean_mm"] = moved["mean_mm"]
                     row["mesh_move_p95_mm"] = moved["p95_mm"]

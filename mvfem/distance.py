@@ -29,7 +29,8 @@ import numpy as np
 
 __all__ = ["point_triangle_distance", "points_within", "surface_samples", "weighted_percentile",
            "surface_distance", "SurfaceDistance", "read_reference", "ReferenceSurface",
-           "reference_outputs", "level_change", "level_change_map", "DEFAULT_LABELS"]
+           "reference_outputs", "level_change", "last_move", "level_change_map",
+           "DEFAULT_LABELS"]
 
 log = logging.getLogger(__name__)
 
@@ -448,6 +449,13 @@ def level_change(finer, coarser) -> tuple[dict, np.ndarray]:
     d = surface_distance(xf, tf, xc, tc, gf if by_leaflet else None, gc if by_leaflet else None)
     return ({"mean_mm": d.mean_abs_error_mm, "p95_mm": d.p95_error_mm,
              "hausdorff_mm": d.hausdorff_mm, "compared": d.compared}, d.facet_mm)
+
+
+def last_move(summary: dict | None) -> dict | None:
+    """How far a refined run's last refinement moved its closure: the block of
+    :func:`level_change` that summary.json keeps as ``coarse_start.distance_to_finer_mm``;
+    None for a run on one mesh, one whose levels were not measured, or no summary."""
+    return ((summary or {}).get("coarse_start") or {}).get("distance_to_finer_mm")
 
 
 def level_change_map(surface, finer, facet_mm, block: dict, cells: tuple[int, int],

@@ -797,6 +797,7 @@ def _solve_to_accuracy(scene: Scene, out, comm, progress: bool, write: bool,
     no warm start."""
     import copy
 
+    from mvfem.distance import last_move
     from mvfem.scene import _make
 
     target, cap = float(scene["mesh"]["accuracy"]), int(scene["mesh"]["refine"])
@@ -816,7 +817,7 @@ def _solve_to_accuracy(scene: Scene, out, comm, progress: bool, write: bool,
         def more(r: Result, level=level) -> bool:
             """Whether a finer level is needed after ``r`` (and, where not, the summary's
             ``accuracy``)."""
-            d = (r.summary.get("coarse_start") or {}).get("distance_to_finer_mm")
+            d = last_move(r.summary)
             if level > 0 and r.converged and d is None:   # (one stopped short has none)
                 raise InputError(f"{scene.source}: mesh.accuracy: needs nested levels "
                                  "(a valve solved in pseudo-time)")

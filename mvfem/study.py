@@ -948,6 +948,7 @@ def _fmt(v) -> str:
 
 def collect_results(study: Study, out: str | Path) -> list[dict]:
     """One row per run (``RESULT_COLUMNS``), from the per-run files in ``out``."""
+    from mvfem.distance import last_move
     from mvfem.figures import leaflet_values
 
     out = Path(out)
@@ -983,7 +984,7 @@ def collect_results(study: Study, out: str | Path) -> list[dict]:
                 row[f"reference_{k}"] = ref.get(k)
             # a refined run: how far its last refinement moved the closure (README, "Each
             # refined run measures its own mesh error"), beside its error against the reference
-            moved = (s.get("coarse_start") or {}).get("distance_to_finer_mm") or {}
+            moved = last_move(s) or {}
             row["mesh_move_mean_mm"] = moved.get("mean_mm")
             row["mesh_move_p95_mm"] = moved.get("p95_mm")
             values = leaflet_values(d, spec.regions)
