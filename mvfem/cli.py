@@ -180,6 +180,22 @@ def level_lines(s: dict) -> list[str]:
     return lines
 
 
+def valve_line(s: dict) -> str:
+    """The terminal's line on a valve's closure (summary.json ``s`` with ``valve``): the
+    stepped coaptation length with the continuous trace length beside it (the first jumps
+    by tenths of a millimetre between meshes and paths, the second moves smoothly: README
+    "Valve outputs and metrics"), the coaptation area, orifice, tenting and penetration."""
+    v = s["valve"]
+    fmt = lambda x, unit: "n/a" if x is None else f"{x:.3g} {unit}"  # noqa: E731
+    return (f"coaptation length {fmt(v.get('coaptation_length_mm'), 'mm')} (trace "
+            f"{fmt(v.get('coaptation_trace_length_mm'), 'mm')}), area "
+            f"{fmt(v.get('coaptation_area_mm2'), 'mm2')}; regurgitant orifice "
+            f"{fmt(v.get('regurgitant_orifice_area_mm2'), 'mm2')}; tenting "
+            f"{fmt(v.get('tenting_height_mm'), 'mm')}; max penetration "
+            f"{fmt(s.get('max_penetration_mm'), 'mm')} (closest approach "
+            f"{fmt((s.get('contact') or {}).get('min_distance_mm'), 'mm')})")
+
+
 def accuracy_line(acc: dict) -> str:
     """The terminal's line on ``mesh.accuracy`` (summary.json ``accuracy``)."""
     moved = "" if acc["moved_mm"] is None else (
@@ -206,15 +222,8 @@ def _solve_and_report(scene_path, changes, out) -> int:
     _say(f"{'converged' if s['converged'] else 'NOT converged'}: {s['pressure_Pa'] / 1e3:g} kPa, "
          f"{s['load_steps']} load steps, {s['newton_iterations']} Newton iterations, "
          f"{s['wall_time_s']:.1f} s; max displacement {s['max_displacement_mm']:.4g} mm")
-    v = s.get("valve")
-    if v:
-        fmt = lambda x, unit: "n/a" if x is None else f"{x:.3g} {unit}"  # noqa: E731
-        _say(f"coaptation length {fmt(v.get('coaptation_length_mm'), 'mm')}, area "
-             f"{fmt(v.get('coaptation_area_mm2'), 'mm2')}; regurgitant orifice "
-             f"{fmt(v.get('regurgitant_orifice_area_mm2'), 'mm2')}; tenting "
-             f"{fmt(v.get('tenting_height_mm'), 'mm')}; max penetration "
-             f"{fmt(s.get('max_penetration_mm'), 'mm')} (closest approach "
-             f"{fmt((s.get('contact') or {}).get('min_distance_mm'), 'mm')})")
+    if s.get("valve"):
+        _say(valve_line(s))
     for line in level_lines(s):
         _say(line)
     if s.get("accuracy"):

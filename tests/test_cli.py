@@ -70,6 +70,22 @@ def test_materials_lists_sets_and_missing(capsys):
     assert "not available" in text and "Table II" in text
 
 
+def test_valve_line_puts_the_trace_length_beside_the_stepped_one():
+    """The line a valve's run prints: both coaptation lengths (the trace beside the stepped
+    one), and n/a for a metric the summary lacks (a valve that did not coapt has no trace)."""
+    from mvfem.cli import valve_line
+
+    s = {"valve": {"coaptation_length_mm": 7.8431, "coaptation_trace_length_mm": 7.1549,
+                   "coaptation_area_mm2": 262.2, "regurgitant_orifice_area_mm2": 0.0,
+                   "tenting_height_mm": 5.1497},
+         "max_penetration_mm": 0.0, "contact": {"min_distance_mm": 0.1562}}
+    assert valve_line(s) == ("coaptation length 7.84 mm (trace 7.15 mm), area 262 mm2; "
+                             "regurgitant orifice 0 mm2; tenting 5.15 mm; max penetration 0 mm "
+                             "(closest approach 0.156 mm)")
+    s["valve"]["coaptation_trace_length_mm"] = None
+    assert valve_line(s).startswith("coaptation length 7.84 mm (trace n/a), area")
+
+
 @pytest.mark.parametrize("args,words", [
     (["biaxial", "--sets", "CP09"], ["CP09", "unknown"]),
     (["biaxial", "--leaflet", "posterior", "--sets", "CP03"], ["CP03", "not available"]),
