@@ -275,12 +275,12 @@ class Outcome:
 
 
 def _env() -> dict:
-    env = dict(os.environ)
+    from mvfem.relaunch import without_mpi_job
+
+    env = without_mpi_job()  # a case started under mpirun runs as its own serial program
     env.setdefault("OPENBLAS_NUM_THREADS", "1")
     root = str(Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    for k in [k for k in env if k.startswith(("OMPI_COMM_WORLD", "PMIX_", "OMPI_MCA"))]:
-        env.pop(k)  # a case started under mpirun runs as its own serial program
     return env
 
 

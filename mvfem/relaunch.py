@@ -27,7 +27,7 @@ import sys
 import threading
 import time
 
-__all__ = ["RETRIES", "WITHIN_S", "silent_start_exit", "run", "main"]
+__all__ = ["RETRIES", "WITHIN_S", "silent_start_exit", "without_mpi_job", "run", "main"]
 
 #: how many times a command that exits silently at start-up is started again (also the suite's
 #: ``run_child`` and a study's runs)
@@ -49,6 +49,30 @@ def silent_start_exit(returncode: int, seconds: float, stdout: str | None, stder
     and Python's own a traceback."""
     return (returncode == 1 and seconds < within_s and not (stdout or "").strip()
             and all(_MPIRUN_REPORT.match(line) for line in (stderr or "").splitlines()))
+
+
+#: the variables of an MPI job (Open MPI's, its runtime's, PMIx's, PMI's, MPICH's Hydra's)
+_MPI_JOB = ("OMPI_", "PMIX_", "PMI_", "ORTE_", "OPAL_", "PRTE_", "HYDRA_", "HYDI_",
+            "MPI_LOCALRANKID")
+
+
+def without_mpi_job(env: dict | None = None, **extra: str) -> dict:
+    """A copy of ``env`` (default ``os.environ``) without the variables of an MPI job, but
+    ``OMPI_ALLOW_RUN_AS_ROOT*``, with ``extra`` set: the environment of a child that runs as
+    a program of its own, serially or under an ``mpirun`` of its own.
+
+    A rank of an ``mpirun`` has them, and so does a process that became an MPI singleton
+    (importing ``mpi4py``: Open MPI sets ``OMPI_MCA_ess=singleton``, ``OMPI_MCA_pmix`` and
+    ``OMPI_APP_CTX_NUM_PROCS=1`` in its environment), and every process it starts inherits
+    them: an ``mpirun`` started with a singleton's variables exits 1 without a word (seen in
+    session 52 from pytest-xdist's workers, which pytest starts after its conftest made it a
+    singleton)."""
+    env = dict(os.environ if env is None else env)
+    for k in [k for k in env if k.startswith(_MPI_JOB)
+              and not k.startswith("OMPI_ALLOW_RUN_AS_ROOT")]:
+        del env[k]
+    env.update(extra)
+    return env
 
 
 def _pump(src, dst, kept: list[bytes], limit: int = 1 << 16) -> None:

@@ -57,7 +57,7 @@ from typing import Any
 
 
 from mvfem.errors import InputError
-from mvfem.relaunch import RETRIES, WITHIN_S
+from mvfem.relaunch import RETRIES, WITHIN_S, without_mpi_job
 from mvfem.scene import read_toml
 
 __all__ = ["Study", "Case", "RunSpec", "load_study", "run_study", "one_mesh_runs",
@@ -410,10 +410,7 @@ def _child_env() -> dict:
     """The environment of a run: no MPI job of ours (a study started under mpirun must not hand
     its MPI environment to the runs), an isolated MPI singleton (no orted daemon and session
     directory per run: many of those at once on one machine), one BLAS thread per process."""
-    env = {k: v for k, v in os.environ.items()
-           if not (k.startswith(("OMPI_", "PMIX_", "PMI_", "ORTE_", "HYDRA_", "HYDI_",
-                                 "MPI_LOCALRANKID"))
-                   and not k.startswith("OMPI_ALLOW_RUN_AS_ROOT"))}
+    env = without_mpi_job()
     env.setdefault("OPENBLAS_NUM_THREADS", "1")
     env.setdefault("OMP_NUM_THREADS", "1")
     env["OMPI_MCA_ess_singleton_isolated"] = "1"

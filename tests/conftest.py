@@ -11,7 +11,7 @@ import pytest
 from mpi4py import MPI
 
 from mvfem.cli import quiet_jit_logs  # noqa: E402
-from mvfem.relaunch import RETRIES, silent_start_exit  # noqa: E402
+from mvfem.relaunch import RETRIES, silent_start_exit, without_mpi_job  # noqa: E402
 
 quiet_jit_logs()
 
@@ -84,7 +84,11 @@ def run_child(cmd, *, retries: int = RETRIES, **kw) -> subprocess.CompletedProce
     ``retries`` times, each with a warning in pytest's summary) where it exits silently at
     start-up (:func:`mvfem.relaunch.silent_start_exit`), as a study starts its runs again
     (``mvfem.study``): in session 32 three fresh-clone suites failed on one such child each.
-    A child that says anything, or exits otherwise, is returned as it is."""
+    A child that says anything, or exits otherwise, is returned as it is. Its environment is
+    the suite's without an MPI job's variables (:func:`mvfem.relaunch.without_mpi_job`)
+    unless ``env`` is given: a child of this process, an MPI singleton, would otherwise
+    inherit the singleton's."""
+    kw.setdefault("env", without_mpi_job())
     kw.setdefault("capture_output", True)
     kw.setdefault("text", True)
     check = kw.pop("check", False)

@@ -173,3 +173,41 @@ def test_relaunch_drains_a_command_whose_reader_stopped(tmp_path):
     finally:
         p.kill()  # (a hung wrapper; its command ends on its own pipe)
     assert b"Traceback" not in p.stderr.read()
+
+
+# a process that became an MPI singleton (mpi4py imported) starts a child with its own
+# environment, as pytest starts pytest-xdist's workers: the child's environment, as JSON
+_SINGLETONS_CHILD = """
+import json, subprocess, sys
+from mpi4py import MPI
+assert MPI.COMM_WORLD.size == 1
+print(subprocess.run([sys.executable, "-c", "import json, os; print(json.dumps(dict(os.environ)))"],
+                     capture_output=True, text=True, check=True).stdout)
+"""
+
+
+def test_an_mpirun_started_from_a_singletons_child_runs_without_its_mpi_job():
+    """``without_mpi_job``: a child of an MPI singleton inherits the singleton's variables
+    (``OMPI_MCA_ess=singleton``...), with which an ``mpirun`` it starts exits 1 without a word
+    (session 52: every mpirun of the suite under pytest-xdist); without them, that mpirun
+    runs its two ranks. The variables of ``mpirun``'s own permission are kept."""
+    import json
+    import shutil
+
+    from mvfem.relaunch import without_mpi_job
+
+    base = without_mpi_job()  # (this process may be a singleton's child itself)
+    inherited = json.loads(run_child([sys.executable, "-c", _SINGLETONS_CHILD], env=base,
+                                     timeout=120, check=True).stdout)
+    added = {k for k in inherited if k not in base}
+    assert any(k.startswith("OMPI_MCA") for k in added), added  # (what this test is about)
+    inherited.update(OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1")
+    env = without_mpi_job(inherited, OPENBLAS_NUM_THREADS="1")
+    assert not any(k.startswith(("OMPI_MCA", "PMIX_")) or k == "OMPI_APP_CTX_NUM_PROCS"
+                   for k in env)
+    assert env["OMPI_ALLOW_RUN_AS_ROOT"] == "1" and env["OPENBLAS_NUM_THREADS"] == "1"
+    assert env["PATH"] == inherited["PATH"]
+    r = run_child([shutil.which("mpirun"), "--oversubscribe", "-n", "2", sys.executable, "-c",
+                   "from mpi4py import MPI; print(MPI.COMM_WORLD.size)"],
+                  env=env, stdin=subprocess.DEVNULL, timeout=120)
+    assert r.returncode == 0 and r.stdout.split() == ["2", "2"], r.stderr[-2000:]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -12,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import run_child
+
+from mvfem.relaunch import without_mpi_job
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,12 +25,10 @@ def _mpirun(n: int) -> list[str]:
 
 
 def _env():
-    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
-               OPENBLAS_NUM_THREADS="1")
-    # a pytest already inside mpirun must not hand its MPI environment to the child
-    for k in [k for k in env if k.startswith(("OMPI_COMM", "PMIX", "OMPI_MCA_orte"))]:
-        env.pop(k)
-    return env
+    # a pytest inside mpirun, or an MPI singleton's child (pytest-xdist's workers), must not
+    # hand its MPI environment to the child
+    return without_mpi_job(OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+                           OPENBLAS_NUM_THREADS="1")
 
 
 def test_biaxial_figures(tmp_path):

@@ -202,10 +202,9 @@ def test_killed_study_resumes_without_repeating(tmp_path):
     study = study[:study.index('[[case]]\nname = "flat-ref"')]
     path = _write(tmp_path, study)
     out = tmp_path / "out"
-    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
-               OPENBLAS_NUM_THREADS="1")
-    for k in [k for k in env if k.startswith(("OMPI_COMM", "PMIX", "OMPI_MCA_orte"))]:
-        env.pop(k)
+    from test_scripts import _env
+
+    env = _env()
     p = subprocess.Popen([sys.executable, "-m", "mvfem.cli", "study", str(path), "--out",
                           str(out)], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
                          text=True, env=env)

@@ -21,7 +21,6 @@ the P1 error of point values and of the load work; the octasphere's area falls s
 
 from __future__ import annotations
 
-import os
 import shutil
 import sys
 from pathlib import Path
@@ -438,10 +437,9 @@ def test_verification_script():
     mpirun = shutil.which("mpirun")
     if mpirun is None:
         pytest.fail("mpirun is not installed (make setup installs openmpi-bin)")
-    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
-               OPENBLAS_NUM_THREADS="1")
-    for k in [k for k in env if k.startswith(("OMPI_COMM", "PMIX", "OMPI_MCA_orte"))]:
-        env.pop(k)
+    from test_scripts import _env
+
+    env = _env()
     r = run_child([mpirun, "--oversubscribe", "-n", "2", sys.executable,
                    str(ROOT / "scripts" / "verification.py"), "--quick"],
                   capture_output=True, text=True, env=env, timeout=900)
