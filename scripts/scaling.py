@@ -124,6 +124,8 @@ def table(rows: list[dict]) -> str:
 
 def run_all(record: str, cases: list[tuple[str, float, int]], procs=(1, 2),
             timeout=3600) -> int:
+    from mvfem.relaunch import without_mpi_job
+
     if Path(record).exists():  # (the runs append: an old record would mix into the table)
         print(f"scaling: --record {record}: exists; choose another name", file=sys.stderr)
         return 2
@@ -133,8 +135,8 @@ def run_all(record: str, cases: list[tuple[str, float, int]], procs=(1, 2),
         for n in procs:
             # the cores shared among the processes: one process gets them all (the default of
             # a plain run), two get one each (OpenBLAS's threads otherwise oversubscribe)
-            env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
-                       OPENBLAS_NUM_THREADS=str(max(cores // n, 1)))
+            env = without_mpi_job(OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+                                  OPENBLAS_NUM_THREADS=str(max(cores // n, 1)))
             cmd = ["mpirun", "--oversubscribe", "-n", str(n), sys.executable, "-u",
                    os.path.abspath(__file__), "--case", case, "--size", str(size),
                    "--refine", str(refine), "--record", os.path.abspath(record)]
