@@ -79,10 +79,20 @@ def rotation(axis, angle: float):
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
-def run_child(cmd, *, retries: int = RETRIES, **kw) -> subprocess.CompletedProcess:
+#: how many times the suite starts a child again that exits silently at start-up, and the
+#: pause before the n-th new start (n x this): such exits come in bursts (README "Studies"),
+#: and in session 52 one child of the suite in two pytest-xdist workers exited so twice in
+#: a row, one short of the ``RETRIES`` a study or the Makefile allows
+CHILD_RETRIES = 2 * RETRIES
+CHILD_PAUSE_S = 1.0
+
+
+def run_child(cmd, *, retries: int = CHILD_RETRIES, pause_s: float = CHILD_PAUSE_S,
+              **kw) -> subprocess.CompletedProcess:
     """``subprocess.run(cmd, capture_output=True, text=True, **kw)``, started again (at most
-    ``retries`` times, each with a warning in pytest's summary) where it exits silently at
-    start-up (:func:`mvfem.relaunch.silent_start_exit`), as a study starts its runs again
+    ``retries`` times, the n-th after a pause of n x ``pause_s``, each with a warning in
+    pytest's summary) where it exits silently at start-up
+    (:func:`mvfem.relaunch.silent_start_exit`), as a study starts its runs again
     (``mvfem.study``): in session 32 three fresh-clone suites failed on one such child each.
     A child that says anything, or exits otherwise, is returned as it is. Its environment is
     the suite's without an MPI job's variables (:func:`mvfem.relaunch.without_mpi_job`)
@@ -101,6 +111,7 @@ def run_child(cmd, *, retries: int = RETRIES, **kw) -> subprocess.CompletedProce
         warnings.warn(f"{' '.join(map(str, cmd))[:200]}: exited 1 at start-up without a "
                       f"word after {time.monotonic() - t0:.1f} s; started again "
                       f"({attempt + 1} of {retries})")
+        time.sleep((attempt + 1) * pause_s)
     if check:
         r.check_returncode()
     return r

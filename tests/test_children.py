@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 from conftest import run_child
@@ -48,15 +49,30 @@ def _starts(tmp_path) -> int:
 
 @pytest.mark.parametrize("say", ["", "mpirun"])
 def test_silent_start_exits_are_started_again(tmp_path, say):
+    """Each new start after a pause that grows (n x ``pause_s`` before the n-th)."""
+    t0 = time.monotonic()
     with pytest.warns(UserWarning, match="without a word") as seen:
-        r = run_child(_child(tmp_path, fails=2, say=say))
+        r = run_child(_child(tmp_path, fails=2, say=say), pause_s=0.3)
     assert r.returncode == 0 and r.stdout == "ran\n"
     assert _starts(tmp_path) == 3 and len(seen) == 2
+    assert time.monotonic() - t0 >= 0.9
+
+
+def test_the_suites_children_get_more_starts_than_a_study(tmp_path):
+    """The suite's default: a child that exits silently four times in a row still runs."""
+    from conftest import CHILD_RETRIES
+
+    from mvfem.relaunch import RETRIES
+
+    assert CHILD_RETRIES == 4 > RETRIES
+    with pytest.warns(UserWarning):
+        r = run_child(_child(tmp_path, fails=4), pause_s=0.0)
+    assert r.returncode == 0 and _starts(tmp_path) == 5
 
 
 def test_a_child_that_keeps_exiting_silently_fails(tmp_path):
     with pytest.warns(UserWarning):
-        r = run_child(_child(tmp_path, fails=5), retries=2)
+        r = run_child(_child(tmp_path, fails=5), retries=2, pause_s=0.0)
     assert r.returncode == 1 and _starts(tmp_path) == 3
 
 
@@ -71,7 +87,7 @@ def test_other_exits_are_returned_as_they_are(tmp_path, recwarn, fails, rc, say)
 
 def test_check_raises_after_the_retries(tmp_path):
     with pytest.warns(UserWarning), pytest.raises(Exception) as err:
-        run_child(_child(tmp_path, fails=5), retries=1, check=True)
+        run_child(_child(tmp_path, fails=5), retries=1, pause_s=0.0, check=True)
     assert "returned non-zero exit status 1" in str(err.value) and _starts(tmp_path) == 2
 
 
