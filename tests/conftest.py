@@ -115,3 +115,23 @@ def run_child(cmd, *, retries: int = CHILD_RETRIES, pause_s: float = CHILD_PAUSE
     if check:
         r.check_returncode()
     return r
+
+
+def write_run_files(spec, out, refine: int, target=None, met: bool = True, **summary):
+    """The files a study's run leaves (a stand-in for the run, for the tests of the study
+    runner and of ``repair-compare``): run.json, and summary.json with the cells of the mesh
+    refined ``refine`` times (100 x 4^refine), ``summary``'s entries and, where the run
+    asked for ``mesh.accuracy`` (``target``), the record of a run that stopped refining
+    there (``met``: whether the target was met)."""
+    import json
+
+    from mvfem.study import _spec_record
+
+    d = spec.dir(out)
+    d.mkdir(parents=True, exist_ok=True)
+    rec = {"converged": True, "cells": 100 * 4 ** refine, **summary}
+    if target:
+        rec["accuracy"] = {"target_mm": target, "refine": refine, "most_refine": 2,
+                           "moved_mm": 0.01, "met": met}
+    (d / "summary.json").write_text(json.dumps(rec))
+    (d / "run.json").write_text(json.dumps(_spec_record(spec)))

@@ -945,25 +945,19 @@ def _fake_runs(calls: list, needs: dict):
     before, as the runner skips them) and writes for each a summary.json and run.json as a run
     would: the cells of its mesh, and under ``mesh.accuracy`` the record of a run that stopped
     refining where its case ``needs``."""
-    from mvfem.study import _spec_record, run_state
+    from conftest import write_run_files
+
+    from mvfem.study import run_state
 
     def run_study(study, out, processes=None, progress=True, report=True, **kw):
         todo = [r for r in study.runs if run_state(r, out) != "done"]
         calls.append([(r.key, dict(r.changes)) for r in todo])
         for r in todo:
-            d = r.dir(out)
-            d.mkdir(parents=True, exist_ok=True)
             acc = r.changes.get("mesh.accuracy")
             refine = needs[r.case] if acc else r.changes.get("mesh.refine", 0)
             if refine is None:  # (a run that failed: no summary)
                 continue
-            summary = {"converged": True, "cells": 100 * 4 ** refine,
-                       "valve": {"coaptation_length_mm": 1.0}}
-            if acc:
-                summary["accuracy"] = {"target_mm": acc, "refine": refine, "most_refine": 2,
-                                       "moved_mm": 0.01, "met": True}
-            (d / "summary.json").write_text(json.dumps(summary))
-            (d / "run.json").write_text(json.dumps(_spec_record(r)))
+            write_run_files(r, out, refine, acc, valve={"coaptation_length_mm": 1.0})
         return {"converged": len(study.runs)}
     return run_study
 

@@ -510,8 +510,10 @@ def test_study_under_accuracy_runs_each_cases_sets_on_one_mesh(tmp_path, monkeyp
     sets that stopped coarser run again without a target; a case without a target runs as
     it is. Run again (resumed), nothing runs. The runs themselves are a stand-in (the files a
     run writes: set CP01 needs one refinement, MNY-mean two on case "a", one on case "b")."""
+    from conftest import write_run_files
+
     import mvfem.study
-    from mvfem.study import _spec_record, mesh_line, run_state
+    from mvfem.study import mesh_line, run_state
 
     needs = {("a", "CP01"): 1, ("a", "MNY-mean"): 2, ("b", "CP01"): 1, ("b", "MNY-mean"): 1}
     missed = {("a", "MNY-mean")}  # (its run to the accuracy ends at the cap, not met)
@@ -523,14 +525,7 @@ def test_study_under_accuracy_runs_each_cases_sets_on_one_mesh(tmp_path, monkeyp
             acc = r.changes.get("mesh.accuracy")
             refine = needs.get((r.case, r.set), 0) if acc else r.changes.get("mesh.refine", 0)
             ran.append((r.key, acc, refine))
-            d = r.dir(out)
-            d.mkdir(parents=True, exist_ok=True)
-            summary = {"converged": True, "cells": 100 * 4 ** refine}
-            if acc:
-                summary["accuracy"] = {"target_mm": acc, "refine": refine, "most_refine": 2,
-                                       "moved_mm": 0.01, "met": (r.case, r.set) not in missed}
-            (d / "summary.json").write_text(json.dumps(summary))
-            (d / "run.json").write_text(json.dumps(_spec_record(r)))
+            write_run_files(r, out, refine, acc, met=(r.case, r.set) not in missed)
         return len(todo)
 
     monkeypatch.setattr(mvfem.study, "_schedule", schedule)
