@@ -48,7 +48,7 @@ bench: setup
 test: test-serial test-mpi
 
 # The serial suite in TEST_WORKERS pytest-xdist workers, one a core: its tests are mostly one
-# thread each, so one process left a 2-core machine's second core idle (745 s against 314-331 s
+# thread each, so one process left a 2-core machine's second core idle (745 s against 314-369 s
 # in two, session 52). TEST_WORKERS=0 runs it in this process.
 TEST_WORKERS ?= 2
 test-serial: setup
