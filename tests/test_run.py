@@ -1069,6 +1069,8 @@ def test_nested_transfer_unfolds_a_crossing_in_place():
     """At 16.5 kPa the demo's closure passes through itself in the posterior leaflet, unseen
     on its own mesh (within the contact's 1 mm exclusion); moved onto the mesh refined once,
     two edges cross a triangle with the offsets and without (README, "Nested levels").
+    Which pressures do is the roundoff's path: on a machine with AVX-512 (session 54) 16.5
+    kPa does not, 16.25 and 16.75 kPa do; the first of those three that does is used.
     ``transfer`` with sweeps smooths the state without offsets near the crossing until it no
     longer crosses: the nodes farther than the exclusion from the crossing's nodes keep
     exactly the moved state, the crossing's own nodes move; without sweeps the whole state
@@ -1080,17 +1082,20 @@ def test_nested_transfer_unfolds_a_crossing_in_place():
     from mvfem.scene import load_scene
     from mvfem.sequence import UNFOLD_SWEEPS, transfer, transfer_nodes
 
-    scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
-    scene = scene.with_changes({"load.pressure": "16.5 kPa"})
-    coarse = solve(scene, progress=False, write=False)
-    assert coarse.converged
-    fine = build_model(scene.with_changes({"mesh.refine": 1}), MPI.COMM_WORLD)
-    cv, fv = coarse.model.view, fine.view
-    Uc = cv.gather(coarse.model.u.x.array[:coarse.model.V.dofmap.index_map.size_local * 3])
-    moved, _ = transfer_nodes(cv.X, cv.cells, Uc, fv.X, offsets=False)
-    moved[~fv.free] = 0.0
-    near = fine.contact.crossing_nodes(fv.X + moved)
-    assert len(near) > 0
+    demo = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    for pressure in ("16.5 kPa", "16.25 kPa", "16.75 kPa"):
+        scene = demo.with_changes({"load.pressure": pressure})
+        coarse = solve(scene, progress=False, write=False)
+        assert coarse.converged
+        fine = build_model(scene.with_changes({"mesh.refine": 1}), MPI.COMM_WORLD)
+        cv, fv = coarse.model.view, fine.view
+        Uc = cv.gather(coarse.model.u.x.array[:coarse.model.V.dofmap.index_map.size_local * 3])
+        moved, _ = transfer_nodes(cv.X, cv.cells, Uc, fv.X, offsets=False)
+        moved[~fv.free] = 0.0
+        near = fine.contact.crossing_nodes(fv.X + moved)
+        if len(near) > 0:
+            break
+    assert len(near) > 0, "no crossing at any of the three pressures"
 
     out = transfer(coarse.model, fine, sweeps=0)
     assert out["used"] and out["scale"] < 1.0 and "unfolded" not in out
