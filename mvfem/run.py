@@ -10,8 +10,10 @@ pressure load.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -837,6 +839,39 @@ def _solve_to_accuracy(scene: Scene, out, comm, progress: bool, write: bool,
     raise AssertionError("unreachable: the last level always stops")
 
 
+#: seconds of a quiet phase (set-up, outputs) before a line says what is going on
+SLOW_NOTICE_S = 1.5
+
+
+class _Notice:
+    """``text`` logged at most once, when a quiet phase watched by :meth:`watch` is still
+    running ``after`` seconds on (rank 0, with progress). A first run of a law or a mesh
+    kind compiles its forms and C kernels: on the demo 4.7 s of set-up and 4 s of outputs
+    in which the terminal would otherwise stay quiet; cached runs rarely see the line."""
+
+    def __init__(self, comm, progress: bool, text: str, after: float | None = None):
+        self.on = comm.rank == 0 and progress
+        self.text, self.after, self.said = text, after, False
+
+    def _say(self) -> None:
+        self.said = True
+        log.info(self.text)
+
+    @contextlib.contextmanager
+    def watch(self):
+        timer = None
+        if self.on and not self.said:
+            timer = threading.Timer(SLOW_NOTICE_S if self.after is None else self.after,
+                                    self._say)
+            timer.daemon = True
+            timer.start()
+        try:
+            yield
+        finally:
+            if timer is not None:
+                timer.cancel()
+
+
 def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool,
            compare: bool, coarse: Result | None = None,
            more: Callable[[Result], bool] | None = None) -> Result:
@@ -852,7 +887,10 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     compare = compare and bool(scene["output"]["levels"])
     if out is not None:
         prepare_out_on_root(out, comm)
-    model = build_model(scene, comm)
+    setting_up = _Notice(comm, progress, "  setting up the model (a first run compiles its "
+                         "forms and kernels, cached for later runs) ...")
+    with setting_up.watch():
+        model = build_model(scene, comm)
     t_build = time.perf_counter() - t_start
     seq = None
     if _nested(scene, model) or _coarse_size(scene) is not None:
@@ -866,15 +904,18 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     load_norm = _load_scale(model)
     model.pressure.value = 0.0
     try:
-        problem = SNESProblem(model.residual, model.u, model.bcs, prefix=f"mvfem{next(_ids)}_",
-                              options=_petsc_options(model, load_norm),
-                              point_terms=model.point_terms, potential=model.energy,
-                              load=model.load_form, sparsity=model.sparsity)
+        with setting_up.watch():  # (not the coarser levels above: they say their own)
+            problem = SNESProblem(model.residual, model.u, model.bcs,
+                                  prefix=f"mvfem{next(_ids)}_",
+                                  options=_petsc_options(model, load_norm),
+                                  point_terms=model.point_terms, potential=model.energy,
+                                  load=model.load_form, sparsity=model.sparsity)
     except ValueError as e:
         raise InputError(f"{scene.source}: solver.petsc_options: {e}") from None
+    with setting_up.watch():
+        mass = lumped_mass(model)
     u = model.u
     centre = u.vector.copy()
-    mass = lumped_mass(model)
     problem.set_proximal(model.stabiliser_scale, weights=mass, centre=centre)
     tight_atol = s["tolerance"] * load_norm
     method = _method(model)
@@ -1024,7 +1065,10 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
         summary["coarse_start"] = seq
     result.summary = summary
     if outputs and not (more is not None and more(result)):
-        write_outputs(result, problem, write=write and out is not None)
+        with _Notice(comm, progress, f"  {'converged' if converged else 'stopped short'}; "
+                     "computing stresses, strains and metrics (a first run compiles their "
+                     "forms, cached for later runs) ...").watch():
+            write_outputs(result, problem, write=write and out is not None)
     problem.destroy()
     return result
 

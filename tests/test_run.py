@@ -85,6 +85,48 @@ def test_cli_run_and_solver_stopped_short(tmp_path, capsys):
     assert (tmp_path / "short" / "fields.xdmf").exists()
 
 
+def test_quiet_phases_say_what_is_going_on(tmp_path, capsys, monkeypatch):
+    """A set-up or outputs phase still running SLOW_NOTICE_S on says so, once (a first run
+    compiles its forms there, seconds with nothing printed); a quicker one says nothing."""
+    scene = tmp_path / "disk.toml"
+    scene.write_text('title = "disk"\n[mesh]\ngenerator = "disk"\nradius = 10.0\nsize = 2.5\n'
+                     '[[region]]\nlaw = "svk"\nparams = "SVK"\n')
+    monkeypatch.setattr(run_mod, "SLOW_NOTICE_S", 0.0)
+    assert main(["run", str(scene), "--out", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err  # (the log; the results' lines are on stdout)
+    assert err.count("setting up the model") == 1
+    assert err.count("converged; computing stresses, strains and metrics") == 1
+    # each before the line it waits for: the run's first line, the last step's
+    assert err.index("setting up the model") < err.index("disk: ") \
+        < err.index("converged; computing")
+    monkeypatch.setattr(run_mod, "SLOW_NOTICE_S", 1e3)
+    assert main(["run", str(scene), "--out", str(tmp_path / "b")]) == 0
+    out, err = capsys.readouterr()
+    assert "setting up" not in err and "computing stresses" not in err and "disk: " in err
+    assert "converged: 16 kPa" in out
+
+
+def test_notice_is_said_once_and_never_after_its_phase(caplog):
+    import time
+
+    comm = MPI.COMM_SELF
+    n = run_mod._Notice(comm, True, "slow phase", after=0.05)
+    with caplog.at_level("INFO", logger="mvfem"):
+        with n.watch():
+            time.sleep(0.3)
+        with n.watch():  # a second slow phase of the same notice: not said again
+            time.sleep(0.3)
+        quick = run_mod._Notice(comm, True, "quick phase", after=0.2)
+        with quick.watch():
+            pass
+        silent = run_mod._Notice(comm, False, "no progress", after=0.0)
+        with silent.watch():
+            time.sleep(0.1)
+        time.sleep(0.4)  # past the quick phase's threshold: it was cancelled
+    said = [r.getMessage() for r in caplog.records]
+    assert said == ["slow phase"] and n.said and not quick.said
+
+
 def test_cli_run_bad_input(tmp_path, capsys):
     scene = tmp_path / "disk.toml"
     scene.write_text('[mesh]\ngenerator = "disk"\n[[region]]\nlaw = "mny"\nparams = "MNY-mean"\n'
