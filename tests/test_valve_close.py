@@ -166,8 +166,9 @@ def test_coarse_start_reaches_the_same_closure_in_fewer_steps(demo):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("pressure", [None, "16.5 kPa"])
-def test_nested_levels_reach_the_closure_from_the_open_state(pressure):
+@pytest.mark.parametrize("pressures", [None, ("16.5 kPa", "16.25 kPa", "16.75 kPa")],
+                         ids=["16 kPa", "crossing"])
+def test_nested_levels_reach_the_closure_from_the_open_state(pressures):
     """Nested levels (mesh.refine = 1, solver.nested): the demo refined once (4576 cells),
     closed from the demo's own closure carried onto it, reaches the closure of the same mesh
     from the open state (nodes within 0.01 mm on average, coaptation and tenting within
@@ -178,11 +179,16 @@ def test_nested_levels_reach_the_closure_from_the_open_state(pressure):
     (within the contact's exclusion), and the moved state crosses: the refined level starts
     from it smoothed where it crosses (``sequence.unfold``; until session 43 scaled back,
     ``sequence.SCALES``, 0.8). That was 15.5 kPa on the unrounded mesh before session 39; on
-    the rounded one it is 16.25-16.75 kPa (README, "Nested levels")."""
+    the rounded one it is 16.25-16.75 kPa (README, "Nested levels"); which of them is the
+    roundoff's path: on session 54's AVX-512 machine 16.5 kPa does not cross, 16.25 does.
+    The first of the three whose nested start was smoothed is used."""
     scene = mvfem.load_scene(DEMO).with_changes({"mesh.refine": 1})
-    if pressure is not None:
-        scene = scene.with_changes({"load.pressure": pressure})
-    nested = mvfem.solve(scene, progress=False, write=False)
+    for pressure in pressures or [None]:
+        if pressure is not None:
+            scene = scene.with_changes({"load.pressure": pressure})
+        nested = mvfem.solve(scene, progress=False, write=False)
+        if nested.summary["coarse_start"].get("unfolded", 0) > 0:
+            break
     direct = mvfem.solve(scene.with_changes({"solver.nested": False}), progress=False,
                          write=False)
     s, s0 = nested.summary, direct.summary
@@ -191,6 +197,6 @@ def test_nested_levels_reach_the_closure_from_the_open_state(pressure):
     assert s["coarse_start"]["nested"] and "coarse_start" not in s0
     assert s["coarse_start"]["used"]
     assert s["coarse_start"]["scale"] == 1.0
-    assert (s["coarse_start"].get("unfolded", 0) > 0) == (pressure is not None)
+    assert (s["coarse_start"].get("unfolded", 0) > 0) == (pressures is not None)
     assert s["newton_iterations"] < 0.4 * s0["newton_iterations"]
     _same_closure(nested, direct, metrics=0.05, mean=0.01)
