@@ -112,8 +112,10 @@ def test_notice_is_said_once_and_never_after_its_phase(caplog):
     comm = MPI.COMM_SELF
     n = run_mod._Notice(comm, True, "slow phase", after=0.05)
     with caplog.at_level("INFO", logger="mvfem"):
-        with n.watch():
-            time.sleep(0.3)
+        with n.watch():  # a phase that lasts until it is said (at most 10 s: a busy machine)
+            end = time.monotonic() + 10.0
+            while not n.said and time.monotonic() < end:
+                time.sleep(0.01)
         with n.watch():  # a second slow phase of the same notice: not said again
             time.sleep(0.3)
         quick = run_mod._Notice(comm, True, "quick phase", after=0.2)
