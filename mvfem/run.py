@@ -845,14 +845,14 @@ SLOW_NOTICE_S = 1.5
 
 class _Notice:
     """``text`` logged at most once, when a quiet phase watched by :meth:`watch` is still
-    running ``after`` seconds on (rank 0, with progress). A first run of a law or a mesh
+    running :data:`SLOW_NOTICE_S` seconds on (rank 0, with progress). A first run of a law or a mesh
     kind compiles its forms and C kernels: on the demo 4.7 s of set-up and 4 s of outputs
     in which the terminal would otherwise stay quiet. Cached, the demo's set-up and outputs
     take 0.7-0.8 s (no line); the refined demo's outputs 1.9 s (the line)."""
 
-    def __init__(self, comm, progress: bool, text: str, after: float | None = None):
+    def __init__(self, comm, progress: bool, text: str):
         self.on = comm.rank == 0 and progress
-        self.text, self.after, self.said = text, after, False
+        self.text, self.said = text, False
 
     def _say(self) -> None:
         self.said = True
@@ -862,8 +862,7 @@ class _Notice:
     def watch(self):
         timer = None
         if self.on and not self.said:
-            timer = threading.Timer(SLOW_NOTICE_S if self.after is None else self.after,
-                                    self._say)
+            timer = threading.Timer(SLOW_NOTICE_S, self._say)
             timer.daemon = True
             timer.start()
         try:
@@ -904,16 +903,15 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     s = scene["solver"]
     load_norm = _load_scale(model)
     model.pressure.value = 0.0
-    try:
-        with setting_up.watch():  # (not the coarser levels above: they say their own)
+    with setting_up.watch():  # (not the coarser levels above: they say their own)
+        try:
             problem = SNESProblem(model.residual, model.u, model.bcs,
                                   prefix=f"mvfem{next(_ids)}_",
                                   options=_petsc_options(model, load_norm),
                                   point_terms=model.point_terms, potential=model.energy,
                                   load=model.load_form, sparsity=model.sparsity)
-    except ValueError as e:
-        raise InputError(f"{scene.source}: solver.petsc_options: {e}") from None
-    with setting_up.watch():
+        except ValueError as e:
+            raise InputError(f"{scene.source}: solver.petsc_options: {e}") from None
         mass = lumped_mass(model)
     u = model.u
     centre = u.vector.copy()

@@ -106,22 +106,25 @@ def test_quiet_phases_say_what_is_going_on(tmp_path, capsys, monkeypatch):
     assert "converged: 16 kPa" in out
 
 
-def test_notice_is_said_once_and_never_after_its_phase(caplog):
+def test_notice_is_said_once_and_never_after_its_phase(caplog, monkeypatch):
     import time
 
     comm = MPI.COMM_SELF
-    n = run_mod._Notice(comm, True, "slow phase", after=0.05)
+    n = run_mod._Notice(comm, True, "slow phase")
     with caplog.at_level("INFO", logger="mvfem"):
+        monkeypatch.setattr(run_mod, "SLOW_NOTICE_S", 0.05)  # (read as a watch starts)
         with n.watch():  # a phase that lasts until it is said (at most 10 s: a busy machine)
             end = time.monotonic() + 10.0
             while not n.said and time.monotonic() < end:
                 time.sleep(0.01)
         with n.watch():  # a second slow phase of the same notice: not said again
             time.sleep(0.3)
-        quick = run_mod._Notice(comm, True, "quick phase", after=0.2)
+        monkeypatch.setattr(run_mod, "SLOW_NOTICE_S", 0.2)
+        quick = run_mod._Notice(comm, True, "quick phase")
         with quick.watch():
             pass
-        silent = run_mod._Notice(comm, False, "no progress", after=0.0)
+        monkeypatch.setattr(run_mod, "SLOW_NOTICE_S", 0.0)
+        silent = run_mod._Notice(comm, False, "no progress")
         with silent.watch():
             time.sleep(0.1)
         time.sleep(0.4)  # past the quick phase's threshold: it was cancelled
