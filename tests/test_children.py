@@ -224,6 +224,7 @@ def test_an_mpirun_started_from_a_singletons_child_runs_without_its_mpi_job():
     assert env["OMPI_ALLOW_RUN_AS_ROOT"] == "1" and env["OPENBLAS_NUM_THREADS"] == "1"
     assert env["PATH"] == inherited["PATH"]
     r = run_child([shutil.which("mpirun"), "--oversubscribe", "-n", "2", sys.executable, "-c",
-                   "from mpi4py import MPI; print(MPI.COMM_WORLD.size)"],
+                   "from mpi4py import MPI; c = MPI.COMM_WORLD; s = c.gather(c.size); "
+                   "c.rank == 0 and print(*s)"],
                   env=env, stdin=subprocess.DEVNULL, timeout=120)
     assert r.returncode == 0 and r.stdout.split() == ["2", "2"], r.stderr[-2000:]
