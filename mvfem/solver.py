@@ -96,6 +96,23 @@ class SNESProblem:
 
         self.u = u
         self.bcs = list(bcs)
+        self.comm = u.function_space.mesh.comm
+        # the options first, before seconds of form compilation: a rejected one is bad input,
+        # said at once and alone (no progress line before it)
+        self.snes = PETSc.SNES().create(self.comm)
+        self.prefix = prefix
+        self.snes.setOptionsPrefix(prefix)
+        opts = PETSc.Options(prefix)
+        self._options = {**DEFAULT_OPTIONS, **(options or {})}
+        for k, v in self._options.items():
+            opts[k] = v
+        try:
+            self.snes.setFromOptions()
+            self.snes.getKSP().setFromOptions()
+            self.snes.getKSP().getPC().setFromOptions()
+        except PETSc.Error as e:
+            raise ValueError(f"PETSc rejected the options {options or {}} (error code "
+                             f"{e.ierr})") from None
         if J is None:
             J = ufl.derivative(F, u, ufl.TrialFunction(u.function_space))
         kw = dict(form_compiler_params=form_compiler_params or {}, jit_params=jit_params or {})
@@ -121,7 +138,6 @@ class SNESProblem:
         self.P = fem.form(load, **kw) if load is not None else None
         self._pv = fpetsc.create_vector(self.P) if self.P is not None else None
         self.point_terms = point_terms if point_terms else None
-        self.comm = u.function_space.mesh.comm
         #: how often the matrix was given room for new couplings of the point terms
         self.regrowths = 0
         self.A, self._room = self._first_matrix()
@@ -136,13 +152,6 @@ class SNESProblem:
         self._work = self.x.duplicate()
         self._diagonal: PETSc.Vec | None = None  # the unshifted tangent's (evaluate_tangent)
 
-        self.snes = PETSc.SNES().create(self.comm)
-        self.prefix = prefix
-        self.snes.setOptionsPrefix(prefix)
-        opts = PETSc.Options(prefix)
-        self._options = {**DEFAULT_OPTIONS, **(options or {})}
-        for k, v in self._options.items():
-            opts[k] = v
         self.snes.setFunction(self._residual, self.b)
         self.snes.setJacobian(self._jacobian, self.A)
         self.step_scalings = 0
@@ -150,13 +159,6 @@ class SNESProblem:
                                                 for t in self.point_terms.terms):
             # line-search Newton only: newtontr does not call the precheck
             self.snes.setLineSearchPreCheck(self._precheck)
-        try:
-            self.snes.setFromOptions()
-            self.snes.getKSP().setFromOptions()
-            self.snes.getKSP().getPC().setFromOptions()
-        except PETSc.Error as e:
-            raise ValueError(f"PETSc rejected the options {options or {}} (error code "
-                             f"{e.ierr})") from None
 
     def forms_matrix(self) -> PETSc.Mat:
         """A new matrix with the pattern of the forms' tangent and of ``sparsity`` (no point

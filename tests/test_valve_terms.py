@@ -2105,6 +2105,30 @@ def test_the_matrix_has_room_for_the_hinges():
     assert refused == [False, True]
 
 
+def test_rejected_petsc_option_is_refused_before_any_form_is_compiled(monkeypatch):
+    """A PETSc option that SNES refuses is bad input, said at once: before the forms' compile
+    (seconds on a first run, in which a progress line would otherwise come before the error).
+    The compiles are counted on ``dolfinx.fem.form``; a good option compiles them."""
+    import ufl
+    from dolfinx import fem, mesh
+    from mpi4py import MPI
+
+    from mvfem.solver import SNESProblem
+
+    msh = mesh.create_unit_square(MPI.COMM_SELF, 2, 2)
+    V = fem.FunctionSpace(msh, ("Lagrange", 1))
+    u = fem.Function(V)
+    F = ufl.inner(ufl.grad(u), ufl.grad(ufl.TestFunction(V))) * ufl.dx
+    compiled = []
+    form = fem.form
+    monkeypatch.setattr(fem, "form", lambda *a, **k: compiled.append(1) or form(*a, **k))
+    with pytest.raises(ValueError, match="PETSc rejected the options"):
+        SNESProblem(F, u, [], prefix="refused_first_", options={"snes_monitor": "true"})
+    assert compiled == []
+    pb = SNESProblem(F, u, [], prefix="accepted_", options={"snes_max_it": 3})
+    assert len(compiled) >= 2 and pb.snes.getTolerances()[3] == 3
+
+
 def test_pattern_form_made_after_a_cold_compile(tmp_path):
     """A cold FFCx compile (here: a fresh cache directory) sets ``variant='equispaced'`` on the
     elements of the space, so test functions made after it hash unlike those made before,
