@@ -315,14 +315,17 @@ def _cmd_mesh(args) -> int:
     tags = np.zeros(len(cells), dtype=np.int32)
     if surface.cell_tags is not None:
         tags[surface.cell_tags.indices] = surface.cell_tags.values
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if valve:  # the import format of CONTRACT.md: leaflets, annulus, chordae
-        from mvfem.meshes.imported import write_valve_with_chordae
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if valve:  # the import format of CONTRACT.md: leaflets, annulus, chordae
+            from mvfem.meshes.imported import write_valve_with_chordae
 
-        write_valve_with_chordae(out, surface)
-    else:
-        write_surface(out, x, cells, cell_data={"region": tags})
-    surface.write_info(str(out) + ".json")
+            write_valve_with_chordae(out, surface)
+        else:
+            write_surface(out, x, cells, cell_data={"region": tags})
+        surface.write_info(str(out) + ".json")
+    except OSError as e:   # (a parent that is a file, no permission, a read-only disk)
+        raise InputError(f"--out {out}: cannot be written ({e.strerror or e})") from None
     _say(f"wrote {out} ({len(cells)} triangles, {len(x)} nodes) and {out}.json")
     return 0
 
@@ -562,6 +565,24 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("mvfem: interrupted", file=sys.stderr, flush=True)
         return 130
+    except Exception:
+        _abort_the_job()
+        raise
+
+
+def _abort_the_job() -> None:
+    """Under mpirun, an unexpected exception on one rank ends the whole job (``MPI_Abort``,
+    exit code 1) after printing its traceback, instead of leaving the other ranks waiting for
+    that rank in a collective call until someone kills the job; a serial run just raises it.
+    (Input errors and solver stops are said collectively by every rank and end normally.)"""
+    mpi = sys.modules.get("mpi4py.MPI")
+    if mpi is None or mpi.COMM_WORLD.size == 1:
+        return
+    import traceback
+
+    traceback.print_exc()
+    sys.stderr.flush()
+    mpi.COMM_WORLD.Abort(1)
 
 
 if __name__ == "__main__":

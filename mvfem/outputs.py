@@ -18,16 +18,21 @@ def prepare_out(out: str | os.PathLike, option: str = "--out") -> Path:
     """Create the output directory, or reuse one that mvfem made before.
 
     A directory that exists, is not empty and was not made by mvfem is refused, so that nothing
-    a user wrote is overwritten.
+    a user wrote is overwritten; so is one that cannot be made or marked (a parent that is a
+    file, no permission, a read-only disk): :class:`InputError` either way.
     """
     path = Path(out)
     if path.exists() and not path.is_dir():
         raise InputError(f"{option} {path}: exists and is not a directory")
-    if path.is_dir() and any(path.iterdir()) and not (path / MARKER).exists():
-        raise InputError(f"{option} {path}: directory exists, is not empty and was not written "
-                         "by mvfem; choose a new directory")
-    path.mkdir(parents=True, exist_ok=True)
-    (path / MARKER).touch()
+    try:
+        if path.is_dir() and any(path.iterdir()) and not (path / MARKER).exists():
+            raise InputError(f"{option} {path}: directory exists, is not empty and was not "
+                             "written by mvfem; choose a new directory")
+        path.mkdir(parents=True, exist_ok=True)
+        (path / MARKER).touch()
+    except OSError as e:   # (a parent that is a file, no permission, a read-only disk)
+        raise InputError(f"{option} {path}: cannot be used as the output directory "
+                         f"({e.strerror or e})") from None
     return path
 
 

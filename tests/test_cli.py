@@ -165,3 +165,90 @@ def test_bad_input_is_one_line_and_a_mesh_one_file_under_mpirun(shared_tmp, caps
     assert sum(len(x) for x in again_lines) == 1 and "exists" in again_lines[0][0]
     assert written == 1
     assert out.is_file() and len(meshio.read(out).cells_dict["triangle"]) > 10
+
+
+def _unusable_out(tmp_path):
+    """An output path no one can make: its parent is a regular file (as root too)."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("mine\n")
+    return blocker / "out"
+
+
+@pytest.mark.parametrize("command", ["biaxial", "run", "bench", "mesh"])
+def test_an_output_path_that_cannot_be_made_is_one_line(tmp_path, capsys, command):
+    """``--out`` under a regular file (or on a read-only disk, or without permission) is an
+    input error naming the option and the path, exit code 2, before anything is computed;
+    until session 55 it was a ``NotADirectoryError`` traceback (exit code 1) and, under
+    mpirun, a job whose other ranks waited for rank 0 forever
+    (``test_an_output_path_that_cannot_be_made_ends_an_mpirun_job``)."""
+    from pathlib import Path
+
+    out = _unusable_out(tmp_path)
+    scene = Path(__file__).resolve().parents[1] / "scripts" / "scenes" / "disk_mny.toml"
+    args = {"biaxial": ["biaxial", "--points", "3", "--out", str(out)],
+            "run": ["run", str(scene), "--out", str(out)],
+            "bench": ["bench", "--quick", "--out", str(out)],
+            "mesh": ["mesh", "disk", "--radius", "5", "--size", "2", "--out",
+                     str(out / "disk.vtu")]}[command]
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith("mvfem: error: --out ") and str(out) in lines[0]
+    assert "cannot be" in lines[0] and "Not a directory" in lines[0]
+    assert (tmp_path / "a_file").read_text() == "mine\n"
+
+
+def _mpirun_child(args, timeout=180):
+    import subprocess
+    import sys
+
+    from conftest import run_child
+    from test_scripts import _env, _mpirun
+
+    try:
+        return run_child([*_mpirun(2), sys.executable, *args], env=_env(), timeout=timeout)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"mpirun -n 2 {' '.join(args)}: still running after {timeout} s (a hang)")
+
+
+def test_an_output_path_that_cannot_be_made_ends_an_mpirun_job(tmp_path):
+    """Under ``mpirun -n 2`` the same bad ``--out`` is one line and exit code 2 within
+    seconds (it hung until session 55: rank 0 raised, rank 1 waited in the broadcast of the
+    verdict)."""
+    from pathlib import Path
+
+    out = _unusable_out(tmp_path)
+    scene = Path(__file__).resolve().parents[1] / "scripts" / "scenes" / "disk_mny.toml"
+    r = _mpirun_child(["-m", "mvfem.cli", "run", str(scene), "--out", str(out)])
+    assert r.returncode == 2, r.stderr[-2000:]
+    said = [ln for ln in r.stderr.splitlines() if ln.startswith("mvfem: ")]
+    assert len(said) == 1 and str(out) in said[0] and "Traceback" not in r.stderr
+
+
+# a command that fails unexpectedly on rank 0 only, while rank 1 waits for it in a collective
+ONE_RANK_FAILS = """
+import mvfem.cli as cli
+from mpi4py import MPI
+
+def broken(args):
+    if MPI.COMM_WORLD.rank == 0:
+        raise RuntimeError("a bug on rank 0 alone")
+    MPI.COMM_WORLD.barrier()
+    return 0
+
+cli._cmd_materials = broken
+raise SystemExit(cli.main(["materials"]))
+"""
+
+
+def test_an_unexpected_error_on_one_rank_ends_the_mpirun_job(tmp_path):
+    """An exception that only one rank meets (a bug, not bad input) ends the whole job with
+    its traceback (``MPI_Abort``, exit code 1) instead of leaving the other rank waiting."""
+    script = tmp_path / "one_rank_fails.py"
+    script.write_text(ONE_RANK_FAILS)
+    r = _mpirun_child([str(script)], timeout=120)
+    assert r.returncode != 0
+    assert "RuntimeError: a bug on rank 0 alone" in r.stderr
+    assert "Traceback" in r.stderr
