@@ -814,6 +814,8 @@ def load_scene(scene: str | Path | dict | Scene) -> Scene:
 def read_toml(path: Path, what: str, missing: str | None = None) -> dict:
     """The table of a TOML file; one-line InputError when it is missing (``missing``, else
     "PATH: no such WHAT file"), not TOML or not text (scenes, studies, repair files)."""
+    if path.is_dir():
+        raise InputError(f"{path}: a directory, not a {what} file")
     if not path.is_file():
         raise InputError(missing or f"{path}: no such {what} file")
     try:
@@ -822,6 +824,8 @@ def read_toml(path: Path, what: str, missing: str | None = None) -> dict:
         raise InputError(f"{path}: not valid TOML: {e}") from None
     except UnicodeDecodeError:
         raise InputError(f"{path}: not a text file") from None
+    except OSError as e:   # (no permission to read it)
+        raise InputError(f"{path}: cannot be read ({e.strerror or e})") from None
 
 
 def parse_set_option(text: str) -> tuple[str, Any]:

@@ -78,6 +78,25 @@ def test_bad_files(tmp_path):
         load_scene(nomesh)
 
 
+def test_a_directory_or_an_unreadable_file_is_one_line(tmp_path, monkeypatch):
+    """A directory given as the scene, and a scene file that cannot be read (no permission:
+    root reads anything, so the read is made to fail), are input errors naming the path;
+    until session 55 the first said "no such scene file" and the second was a traceback."""
+    from pathlib import Path
+
+    with pytest.raises(InputError, match=r": a directory, not a scene file$"):
+        load_scene(tmp_path)
+    scene = tmp_path / "locked.toml"
+    scene.write_text("[mesh]\ngenerator = 'disk'\n")
+
+    def refused(self, *a, **k):
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "read_text", refused)
+    with pytest.raises(InputError, match=r"locked.toml: cannot be read \(Permission denied\)"):
+        load_scene(scene)
+
+
 def test_set_option_parsing():
     assert parse_set_option("solver.degree=2") == ("solver.degree", 2)
     assert parse_set_option("load.pressure=120 mmHg") == ("load.pressure", "120 mmHg")
