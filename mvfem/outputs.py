@@ -8,10 +8,18 @@ from pathlib import Path
 
 from mvfem.errors import InputError
 
-__all__ = ["prepare_out", "prepare_out_on_root", "write_json", "MARKER"]
+__all__ = ["prepare_out", "prepare_out_on_root", "write_json", "MARKER", "RUN_FILES"]
 
 #: file that marks a directory as mvfem output, so later runs may write into it again
 MARKER = ".mvfem-output"
+
+#: every file a run may write into its output directory (which of them depends on the scene:
+#: chordae, a valve's maps, a refined run's level map, a reference surface's distances);
+#: a run into a directory an earlier run wrote removes them before writing its own, so that
+#: none is left from the earlier run beside this one's (:func:`write_outputs`)
+RUN_FILES = ("summary.json", "fields.xdmf", "fields.h5", "chordae.csv",
+             "map_radial_strain.png", "map_radial_stress.png", "map_level_change.png",
+             "distance.vtu", "map_distance.png")
 
 
 def prepare_out(out: str | os.PathLike, option: str = "--out") -> Path:
@@ -304,6 +312,16 @@ def _write_maps(model, fields, x, out) -> None:
     valve_maps(x, model.view.cells, model.view.cell_tag, values, model.surface, out)
 
 
+def _remove_earlier_run_files(out) -> None:
+    """The files of :data:`RUN_FILES` in ``out`` (an earlier run's, in a directory mvfem
+    made: :func:`prepare_out`); nothing else in it is touched."""
+    for name in RUN_FILES:
+        try:
+            (Path(out) / name).unlink()
+        except FileNotFoundError:
+            pass
+
+
 def write_outputs(result, problem, write: bool = True) -> None:
     """Complete ``result.summary`` (displacement, regions, probes, timing) and write files."""
     import time
@@ -315,6 +333,10 @@ def write_outputs(result, problem, write: bool = True) -> None:
     comm = model.comm
     s = result.summary
     t0 = time.perf_counter()
+    if write:
+        if comm.rank == 0:
+            _remove_earlier_run_files(result.out)
+        comm.Barrier()   # (before any rank writes: the fields are written by every rank)
     nloc = model.V.dofmap.index_map.size_local * 3
     umax = np.linalg.norm(model.u.x.array[:nloc].reshape(-1, 3), axis=1).max(initial=0.0)
     s["max_displacement_mm"] = comm.allreduce(float(umax), op=MPI.MAX)

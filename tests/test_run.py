@@ -106,6 +106,35 @@ def test_quiet_phases_say_what_is_going_on(tmp_path, capsys, monkeypatch):
     assert "converged: 16 kPa" in out
 
 
+def test_a_run_into_an_earlier_runs_directory_leaves_none_of_its_files(tmp_path, capsys):
+    """A run writing into a directory an earlier run wrote (mvfem's marker in it) removes the
+    earlier run's files that it does not write itself: a disk has no chordae, no valve or
+    level maps and no reference surface, so a valve's ``chordae.csv`` and maps, left there,
+    would read as this run's (until session 55 they were, and the run's "wrote" line listed
+    them). Files that are not a run's (a user's notes) stay as they are."""
+    from mvfem.outputs import MARKER
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / MARKER).touch()
+    stale = ["chordae.csv", "map_level_change.png", "map_radial_strain.png", "distance.vtu",
+             "map_distance.png", "summary.json"]
+    for name in stale:
+        (out / name).write_text("an earlier run's\n")
+    (out / "notes.txt").write_text("mine\n")
+    scene = tmp_path / "disk.toml"
+    scene.write_text('title = "disk"\n[mesh]\ngenerator = "disk"\nradius = 10.0\nsize = 2.5\n'
+                     '[[region]]\nlaw = "svk"\nparams = "SVK"\n[output]\nxdmf = false\n')
+    capsys.readouterr()
+    assert main(["run", str(scene), "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    left = sorted(p.name for p in out.iterdir())
+    assert left == [MARKER, "notes.txt", "summary.json"], left
+    assert (out / "notes.txt").read_text() == "mine\n"
+    assert json.loads((out / "summary.json").read_text())["converged"] is True
+    assert f"wrote {out}: notes.txt, summary.json" in said
+
+
 def test_notice_is_said_once_and_never_after_its_phase(caplog, monkeypatch):
     import time
 
