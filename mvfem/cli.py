@@ -228,8 +228,9 @@ def _solve_and_report(scene_path, changes, out) -> int:
         _say(line)
     if s.get("accuracy"):
         _say(accuracy_line(s["accuracy"]))
-    written = sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) \
-        if out.is_dir() else []
+    from mvfem.outputs import RUN_FILES
+
+    written = sorted(n for n in RUN_FILES if (out / n).is_file()) if out.is_dir() else []
     _say(f"wrote {out}: {', '.join(written)}")
     check_converged(result)
     return 0
