@@ -275,6 +275,7 @@ def run_biaxial(out: Path, leaflets: tuple[str, ...] = LEAFLETS,
         A dict with the number of rows, of overflowed states, and the files written.
     """
     from mvfem.materials import get_set
+    from mvfem.outputs import remove_earlier_files
 
     strains = strain_grid(strain_min, strain_max, points)
     chosen = []
@@ -285,6 +286,8 @@ def run_biaxial(out: Path, leaflets: tuple[str, ...] = LEAFLETS,
             chosen += parameter_sets(leaflet)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    # an earlier job's figure of a leaflet this one leaves out would read as this one's
+    remove_earlier_files(out, ["biaxial.csv"] + [f"biaxial_{lf}.png" for lf in LEAFLETS])
     curves = biaxial_curves(chosen, strains)
     csv_path = out / "biaxial.csv"
     write_csv(curves, csv_path)

@@ -8,7 +8,8 @@ from pathlib import Path
 
 from mvfem.errors import InputError
 
-__all__ = ["prepare_out", "prepare_out_on_root", "write_json", "MARKER", "RUN_FILES"]
+__all__ = ["prepare_out", "prepare_out_on_root", "write_json", "remove_earlier_files", "MARKER",
+           "RUN_FILES"]
 
 #: file that marks a directory as mvfem output, so later runs may write into it again
 MARKER = ".mvfem-output"
@@ -312,10 +313,10 @@ def _write_maps(model, fields, x, out) -> None:
     valve_maps(x, model.view.cells, model.view.cell_tag, values, model.surface, out)
 
 
-def _remove_earlier_run_files(out) -> None:
-    """The files of :data:`RUN_FILES` in ``out`` (an earlier run's, in a directory mvfem
-    made: :func:`prepare_out`); nothing else in it is touched."""
-    for name in RUN_FILES:
+def remove_earlier_files(out, names=RUN_FILES) -> None:
+    """The files ``names`` in ``out`` (an earlier job's, in a directory mvfem made:
+    :func:`prepare_out`), removed where present; nothing else in it is touched."""
+    for name in names:
         try:
             (Path(out) / name).unlink()
         except FileNotFoundError:
@@ -335,7 +336,7 @@ def write_outputs(result, problem, write: bool = True) -> None:
     t0 = time.perf_counter()
     if write:
         if comm.rank == 0:
-            _remove_earlier_run_files(result.out)
+            remove_earlier_files(result.out)
         comm.Barrier()   # (before any rank writes: the fields are written by every rank)
     nloc = model.V.dofmap.index_map.size_local * 3
     umax = np.linalg.norm(model.u.x.array[:nloc].reshape(-1, 3), axis=1).max(initial=0.0)

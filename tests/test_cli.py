@@ -60,6 +60,12 @@ def test_biaxial_one_leaflet_and_rerun_same_dir(tmp_path):
     assert {r["leaflet"] for r in rows} == {"posterior"}
     assert len(rows) == 3 * 4 * 5
     assert not (out / "biaxial_anterior.png").exists()
+    # both leaflets, then one: the other's figure does not stay behind (until session 55 it did)
+    assert main(["biaxial", "--points", "5", "--strain=0:0.3", "--out", str(out)]) == 0
+    assert (out / "biaxial_anterior.png").exists()
+    assert main(args) == 0
+    assert not (out / "biaxial_anterior.png").exists()
+    assert {r["leaflet"] for r in _rows(out / "biaxial.csv")} == {"posterior"}
 
 
 def test_materials_lists_sets_and_missing(capsys):
