@@ -118,6 +118,24 @@ class _Budget(Exception):
     """The evaluation budget is spent."""
 
 
+def _remove_earlier_calibration(out: Path) -> None:
+    """An earlier calibration's files in ``out`` (a directory mvfem made): its
+    ``calibration.json``, ``evaluations.csv`` and evaluations ``evals/NNN`` (their run files
+    and marker; a directory left with anything else in it stays), so that a shorter
+    calibration into the same directory leaves none of the earlier one's evaluations beside
+    its own."""
+    from mvfem.outputs import MARKER, RUN_FILES, remove_earlier_files
+
+    remove_earlier_files(out, ("calibration.json", "evaluations.csv"))
+    for d in sorted((out / "evals").glob("[0-9][0-9][0-9]")):
+        if d.is_dir() and (d / MARKER).exists():
+            remove_earlier_files(d, RUN_FILES + (MARKER,))
+            try:
+                d.rmdir()
+            except OSError:   # (not empty: not only an evaluation's files)
+                pass
+
+
 def calibrate(scene, reference: str | Path, fit: list[str], out: str | Path,
               bounds: list[tuple[float, float]] | None = None,
               start: list[float] | None = None, max_evals: int = 30, warm: bool = False,
@@ -188,6 +206,9 @@ def calibrate(scene, reference: str | Path, fit: list[str], out: str | Path,
     _check_overlap(scene, ref, comm)
     out = Path(out)
     prepare_out_on_root(out, comm)
+    if rank0:
+        _remove_earlier_calibration(out)
+    comm.Barrier()
     rows: list[dict] = []
     cache: dict[tuple, float] = {}
     warm_u = [None]

@@ -138,3 +138,25 @@ def test_synthetic_truth_per_leaflet(shared_tmp):
     before, after = res["error_before_mm"]["mean_abs_error_mm"], \
         res["error_after_mm"]["mean_abs_error_mm"]
     assert after < 0.2 * before
+
+
+def test_a_shorter_calibration_into_the_same_directory_keeps_none_of_the_earlier(tmp_path,
+                                                                                reference):
+    """Three evaluations, then one into the same directory: only the second calibration's
+    evaluation is left in ``evals/`` (until session 55 the first one's ``001`` and ``002``
+    stayed beside it), and a file of the user's in an evaluation's directory is kept."""
+    from mvfem.calibrate import calibrate
+
+    base = mvfem.load_scene(DEMO).with_changes({"mesh.size": 6.0})
+    kw = dict(bounds=[(0.9, 1.3)], start=[1.0])
+    out = tmp_path / "cal"
+    first = calibrate(base, reference / "near.vtu", [FIT], out, max_evals=3, **kw)
+    assert first["evaluations"] == 3
+    assert sorted(p.name for p in (out / "evals").iterdir()) == ["000", "001", "002"]
+    (out / "evals" / "002" / "notes.txt").write_text("mine\n")
+    second = calibrate(base, reference / "near.vtu", [FIT], out, max_evals=1, **kw)
+    assert second["evaluations"] == 1
+    assert sorted(p.name for p in (out / "evals").iterdir()) == ["000", "002"]
+    assert [p.name for p in (out / "evals" / "002").iterdir()] == ["notes.txt"]
+    rows = (out / "evaluations.csv").read_text().splitlines()
+    assert len(rows) == 2
