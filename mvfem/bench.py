@@ -401,11 +401,15 @@ def run_bench(out: str | Path, quick: bool = False, comm=MPI.COMM_WORLD,
         problems: only these problems (default all: foppl, neo-hookean, valve).
         say: a callable for one progress line per run (rank 0), or None.
     """
-    from mvfem.outputs import prepare_out_on_root
+    from mvfem.outputs import prepare_out_on_root, remove_earlier_files
 
     t0 = time.perf_counter()
     out = Path(out)
     prepare_out_on_root(out, comm)
+    if comm.rank == 0:   # an earlier benchmark's files (another sweep's reference among them)
+        remove_earlier_files(out, ["bench.csv", "bench.md", "bench_pareto.png"]
+                             + [p.name for p in out.glob("valve_reference_h*.vtu")])
+    comm.Barrier()
     todo = [st for st in settings(quick) if problems is None or st.problem in problems]
     rows: list[dict] = []
     valve_ref: dict = {}

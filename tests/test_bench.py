@@ -22,10 +22,28 @@ from mvfem.cli import main
 
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
+    from mvfem.outputs import MARKER
+
     out = tmp_path_factory.mktemp("bench") / "quick"
+    out.mkdir()   # as an earlier full benchmark left it (test_earlier_benchmarks_files_go)
+    (out / MARKER).touch()
+    for name in ("valve_reference_h2_r2.vtu", "bench.md", "notes.txt"):
+        (out / name).write_text("earlier\n")
     code = main(["bench", "--quick", "--out", str(out)])
     assert code == 0
     return out
+
+
+def test_earlier_benchmarks_files_go(quick):
+    """A benchmark into an earlier one's directory leaves none of its files: the full sweep's
+    reference (``valve_reference_h2_r2.vtu``), which the quick one does not write, would
+    otherwise read as this one's (session 55); a file of the user's stays."""
+    names = sorted(p.name for p in quick.iterdir() if not p.name.startswith("."))
+    assert "valve_reference_h2_r2.vtu" not in names
+    assert (quick / "notes.txt").read_text() == "earlier\n"
+    assert (quick / "bench.md").read_text() != "earlier\n"
+    refs = [n for n in names if n.startswith("valve_reference_")]
+    assert len(refs) == 1, names
 
 
 def test_quick_bench_writes_its_files(quick):
