@@ -1541,3 +1541,21 @@ def test_prescribed_motion_steps_back_on_a_refusal_and_stops_where_the_lifting_d
     step(False)
     ramp(0.0)
     assert set_to == pytest.approx([0.25, 0.5, 0.375]) and ramp.share == pytest.approx(0.375)
+
+
+def test_a_stop_far_below_the_target_reports_no_step_it_did_not_solve():
+    """An SVK disk asked for 1e9 kPa stops short (exit code 3 in the CLI). Whatever state it
+    reports must be an equilibrium of the pressure it reports, to an intermediate step's
+    tolerance at most: until session 55 a step carrying under a millionth of the full load
+    passed with no iteration (its tolerance was measured against the full load alone), and
+    the run reported the undeformed disk as converged at 996.9 kPa, its residual the whole
+    load there (``equilibrium_residual`` 1.0)."""
+    from mvfem.scene import load_scene
+
+    scene = load_scene({"mesh": {"generator": "disk", "radius": 10.0, "size": 2.5},
+                        "region": [{"law": "svk", "params": "SVK"}],
+                        "load": {"pressure": "1e9 kPa"}})
+    s = solve(scene, progress=False).summary
+    assert not s["converged"]
+    assert s["pressure_Pa"] == 0.0 or s["equilibrium_residual"] <= run_mod.STEP_OWN_LOAD, \
+        (s["pressure_Pa"], s["equilibrium_residual"], s["max_displacement_mm"])
