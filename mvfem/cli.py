@@ -331,11 +331,26 @@ def _cmd_mesh(args) -> int:
     return 0
 
 
+def _not_under_mpirun(command: str) -> None:
+    """``command`` runs each of its cases as an ``mvfem run`` process of its own, so under
+    ``mpirun -n N`` (N > 1) every rank would run the whole job into the same directory: one
+    rank ran it while another met its lock, exited 2 unheard (rank 0 speaks for all) and had
+    mpirun abort the job. Refused on every rank, before anything is written."""
+    from mpi4py import MPI
+
+    size = MPI.COMM_WORLD.size
+    if size > 1:
+        raise InputError(f"mvfem {command}: runs each case as a process of its own "
+                         f"(--processes at a time); start it without mpirun, not on {size} "
+                         "ranks")
+
+
 def _cmd_study(args) -> int:
     from pathlib import Path
 
     from mvfem.study import load_study, run_study
 
+    _not_under_mpirun("study")
     study = load_study(args.study)  # everything validated before DIR is touched
     out = Path(args.out) if args.out else Path("results") / Path(args.study).stem
     res = run_study(study, out, processes=args.processes, retry_failed=args.retry_failed,
@@ -351,6 +366,8 @@ def _cmd_repair_compare(args) -> int:
     from mvfem.compare import compare, parse_paths, parse_weights, table_text
     from mvfem.scene import parse_set_option
     from mvfem.units import PRESSURE, parse_quantity
+
+    _not_under_mpirun("repair-compare")
 
     diastolic = None
     if not args.no_diastole:

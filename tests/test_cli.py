@@ -258,3 +258,28 @@ def test_an_unexpected_error_on_one_rank_ends_the_mpirun_job(tmp_path):
     assert r.returncode != 0
     assert "RuntimeError: a bug on rank 0 alone" in r.stderr
     assert "Traceback" in r.stderr
+
+
+@pytest.mark.parametrize("command", ["study", "repair-compare"])
+def test_a_study_under_mpirun_is_refused_in_one_line(tmp_path, command):
+    """``mpirun -n 2 mvfem study`` (or ``repair-compare``, a study of repairs) is refused on
+    every rank before anything is written: each case is a process of its own. Until session
+    55 both ranks ran the study into one directory; one met the other's lock, exited 2
+    without a word (rank 0 speaks for all) and mpirun aborted the job around the other."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    study = tmp_path / "tiny.toml"
+    study.write_text('title = "tiny"\nsets = ["MNY-mean"]\nprocesses = 1\nbiaxial = false\n'
+                     '[[case]]\nname = "small"\nscene = "demo"\nset = { "mesh.size" = 6.0 }\n')
+    out = tmp_path / "out"
+    args = {"study": ["study", str(study)],
+            "repair-compare": ["repair-compare", str(root / "scripts" / "scenes"
+                                                     / "valve_pathological.toml"),
+                               "--repairs", str(root / "scripts" / "scenes" / "repairs"
+                                                / "ring_d36.toml")]}[command]
+    r = _mpirun_child(["-m", "mvfem.cli", *args, "--out", str(out)])
+    said = [ln for ln in r.stderr.splitlines() if ln.startswith("mvfem: ")]
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert len(said) == 1 and "without mpirun" in said[0] and command in said[0], r.stderr
+    assert not out.exists()
