@@ -23,6 +23,23 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message):  # noqa: D401 - argparse API
         raise InputError(f"{self.prog}: {message}")
 
+    def _print_message(self, message, file=None):  # (--help, --version: once under mpirun)
+        if _launcher_rank() == 0:
+            super()._print_message(message, file)
+
+
+def _launcher_rank() -> int:
+    """This process's rank as mpirun's environment gives it (0 outside mpirun): what the
+    command line's own output goes by before MPI is started."""
+    import os
+
+    for var in ("OMPI_COMM_WORLD_RANK", "PMIX_RANK", "PMI_RANK"):
+        try:
+            return int(os.environ[var])
+        except (KeyError, ValueError):
+            continue
+    return 0
+
 
 class _StderrHandler(logging.StreamHandler):
     """Writes to whatever sys.stderr is at the time (main() may run many times in a process)."""
@@ -79,7 +96,11 @@ def _complain(text: str) -> None:
     scene, the files and the solver's stops are decided alike on every rank), so rank 0
     speaks for them."""
     mpi = sys.modules.get("mpi4py.MPI")
-    if mpi is None or not mpi.Is_initialized() or mpi.COMM_WORLD.rank == 0:
+    if mpi is not None and mpi.Is_initialized():
+        rank = mpi.COMM_WORLD.rank
+    else:   # (an error of the command line itself, before MPI is started)
+        rank = _launcher_rank()
+    if rank == 0:
         print(text, file=sys.stderr, flush=True)
 
 

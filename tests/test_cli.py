@@ -283,3 +283,15 @@ def test_a_study_under_mpirun_is_refused_in_one_line(tmp_path, command):
     assert r.returncode == 2, r.stderr[-2000:]
     assert len(said) == 1 and "without mpirun" in said[0] and command in said[0], r.stderr
     assert not out.exists()
+
+
+def test_the_command_lines_own_output_is_said_once_under_mpirun():
+    """``--help`` and a command line argparse refuses come before MPI is started, so rank 0
+    could not speak for the others: under ``mpirun -n 2`` each was printed twice (the two
+    errors on one line). mpirun's environment names the rank there (session 55)."""
+    helped = _mpirun_child(["-m", "mvfem.cli", "--help"])
+    refused = _mpirun_child(["-m", "mvfem.cli", "run"])
+    assert helped.returncode == 0 and helped.stdout.count("usage: ") == 1, helped.stdout
+    assert refused.returncode == 2
+    assert refused.stderr.count("mvfem: error: mvfem run: the following arguments are "
+                                "required: scene") == 1, refused.stderr
