@@ -150,7 +150,12 @@ def _gather_region_values(model, fields) -> dict:
 
 
 def probe_displacements(model, probes: list) -> dict:
-    """Displacement at each probe point (reference coordinates, on or near the surface)."""
+    """Displacement at each probe point (reference coordinates, on or near the surface).
+
+    A point on a cell is evaluated there; a point off the surface (a curved leaflet's point
+    between its flat facets, a sphere's) at the surface's closest point, where that lies
+    within the diameter of its cell (``distance_mm`` says how far it was; 0 on the surface),
+    else not at all (``displacement_mm`` null, and a warning)."""
     import numpy as np
     from dolfinx import geometry
 
@@ -169,16 +174,56 @@ def probe_displacements(model, probes: list) -> dict:
         if len(cells):
             local[i] = model.u.eval(pts[i], cells[:1])
     everything = msh.comm.allgather(local)
+    found = [[a[i] for a in everything if np.all(np.isfinite(a[i]))] for i in range(len(pts))]
+    off = [i for i in range(len(pts)) if not found[i]]
+    near = _nearest_on_surface(model, pts[off]) if off else []
     result = {}
     for i, p in enumerate(probes):
-        vals = [a[i] for a in everything if np.all(np.isfinite(a[i]))]
-        result[p["name"]] = {"displacement_mm": [float(c) for c in vals[0]] if vals else None}
-        if not vals and msh.comm.rank == 0:
+        if found[i]:
+            result[p["name"]] = {"displacement_mm": [float(c) for c in found[i][0]],
+                                 "distance_mm": 0.0}
+            continue
+        d, value = near[off.index(i)]
+        result[p["name"]] = {"displacement_mm": None if value is None
+                             else [float(c) for c in value], "distance_mm": d}
+        if value is None and msh.comm.rank == 0:
             import logging
 
             logging.getLogger(__name__).warning(
-                f"probe {p['name']!r}: point {p['point']} is not on the surface")
+                f"probe {p['name']!r}: point {p['point']} is not on the surface (the closest "
+                f"surface point is {d:.3g} mm away, more than its cell's diameter)")
     return result
+
+
+def _nearest_on_surface(model, pts) -> list:
+    """For each point of ``pts`` (m, 3): (distance to the surface, displacement at the
+    surface's closest point), the displacement None where that distance exceeds the
+    diameter of the closest point's cell. Collective; the same list on every rank."""
+    import numpy as np
+
+    from mvfem.contact import closest_point_on_triangles
+
+    msh = model.mesh
+    n_owned = msh.topology.index_map(2).size_local
+    x = msh.geometry.x
+    tri = msh.geometry.dofmap.array.reshape(-1, 3)[:n_owned]
+    a, b, c = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
+    diam = np.max(np.linalg.norm(np.stack([b - a, c - b, a - c]), axis=2), axis=0)
+    mine = []
+    for p in pts:
+        if not len(tri):
+            mine.append((np.inf, 0.0, None))
+            continue
+        d, bary, _ = closest_point_on_triangles(np.broadcast_to(p, a.shape), a, b, c)
+        k = int(np.argmin(d))
+        q = bary[k, 0] * a[k] + bary[k, 1] * b[k] + bary[k, 2] * c[k]
+        mine.append((float(d[k]), float(diam[k]), model.u.eval(q, np.array([k], dtype=np.int32))))
+    everyone = msh.comm.allgather(mine)
+    out = []
+    for j in range(len(pts)):
+        d, size, value = min((r[j] for r in everyone), key=lambda r: r[0])
+        out.append((d, None if d > size else value))
+    return out
 
 
 def reference_step_time(model, problem) -> float:

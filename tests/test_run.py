@@ -1559,3 +1559,33 @@ def test_a_stop_far_below_the_target_reports_no_step_it_did_not_solve():
     assert not s["converged"]
     assert s["pressure_Pa"] == 0.0 or s["equilibrium_residual"] <= run_mod.STEP_OWN_LOAD, \
         (s["pressure_Pa"], s["equilibrium_residual"], s["max_displacement_mm"])
+
+
+@pytest.mark.mpi
+def test_a_probe_off_the_surface_reads_the_closest_surface_point():
+    """A probe off the surface (a curved leaflet's point between its flat facets, a
+    sphere's) reads the displacement at the surface's closest point when that lies within its
+    cell's diameter, and says how far it was; farther, it reads nothing. On a flat disk the
+    closest point of (x, y, h) is (x, y, 0): the probe 0.4 mm above a point must read that
+    point's displacement (evaluated on its cell) and a distance of 0.4 mm; 40 mm beyond the
+    rim, nothing. Until session 55 every point off the cells read nothing. Also under
+    ``mpirun -n 2``, where the closest cell may be another rank's."""
+    from mvfem.scene import load_scene
+
+    on, above = [1.3, 0.7, 0.0], [1.3, 0.7, 0.4]
+    scene = load_scene({"mesh": {"generator": "disk", "radius": 10.0, "size": 2.5},
+                        "region": [{"law": "svk", "params": "SVK"}],
+                        "output": {"probes": [
+                            {"name": "on", "point": on}, {"name": "above", "point": above},
+                            {"name": "centre", "point": [0.0, 0.0, 0.0]},
+                            {"name": "over_centre", "point": [0.0, 0.0, -0.4]},
+                            {"name": "far", "point": [50.0, 0.0, 0.0]}]}})
+    p = solve(scene, progress=False).summary["probes"]
+    assert p["on"]["distance_mm"] == 0.0 and p["centre"]["distance_mm"] == 0.0
+    for name, at in (("above", "on"), ("over_centre", "centre")):
+        assert p[name]["distance_mm"] == pytest.approx(0.4, rel=1e-12)
+        np.testing.assert_allclose(p[name]["displacement_mm"], p[at]["displacement_mm"],
+                                   rtol=1e-9, atol=1e-12)
+    assert abs(p["on"]["displacement_mm"][2]) > 1.0   # (a deflected disk, not a zero)
+    assert p["far"]["displacement_mm"] is None
+    assert p["far"]["distance_mm"] == pytest.approx(40.0, rel=1e-12)
