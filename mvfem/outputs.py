@@ -206,7 +206,8 @@ def _nearest_on_surface(model, pts) -> list:
     msh = model.mesh
     n_owned = msh.topology.index_map(2).size_local
     x = msh.geometry.x
-    tri = msh.geometry.dofmap.array.reshape(-1, 3)[:n_owned]
+    dofmap = msh.geometry.dofmap
+    tri = dofmap.array.reshape(dofmap.num_nodes, -1)[:n_owned, :3]   # (the vertices first)
     a, b, c = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
     diam = np.max(np.linalg.norm(np.stack([b - a, c - b, a - c]), axis=2), axis=0)
     mine = []
