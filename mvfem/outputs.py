@@ -363,10 +363,7 @@ def remove_earlier_files(out, names=RUN_FILES) -> None:
     """The files ``names`` in ``out`` (an earlier job's, in a directory mvfem made:
     :func:`prepare_out`), removed where present; nothing else in it is touched."""
     for name in names:
-        try:
-            (Path(out) / name).unlink()
-        except FileNotFoundError:
-            pass
+        (Path(out) / name).unlink(missing_ok=True)
 
 
 def write_outputs(result, problem, write: bool = True) -> None:

@@ -709,7 +709,7 @@ def run_study(study: Study | str | Path | dict, out: str | Path, processes: int 
 
 def _launch(spec: RunSpec, out: Path, cpus: set | None = None) -> _Running | None:
     """Start one run (None when an earlier study's orphan still holds its directory)."""
-    from mvfem.outputs import prepare_out, write_json
+    from mvfem.outputs import prepare_out, remove_earlier_files, write_json
 
     d = spec.dir(out)
     prepare_out(d)
@@ -718,8 +718,7 @@ def _launch(spec: RunSpec, out: Path, cpus: set | None = None) -> _Running | Non
     except BlockingIOError:
         return None
     # the old files go first, so that a study killed now cannot take them for this run's
-    for name in ("summary.json", "status.json"):
-        (d / name).unlink(missing_ok=True)
+    remove_earlier_files(d, ("summary.json", "status.json"))
     write_json(_spec_record(spec), d / "run.json")
     log = open(d / "run.log", "w")
     log.write("$ " + " ".join(_quote(a) for a in spec.command(out)) + "\n")
