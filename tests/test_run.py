@@ -1561,6 +1561,26 @@ def test_a_stop_far_below_the_target_reports_no_step_it_did_not_solve():
         (s["pressure_Pa"], s["equilibrium_residual"], s["max_displacement_mm"])
 
 
+@pytest.mark.parametrize("first_step", [0.002, 0.01])
+def test_a_small_first_step_on_a_flat_fung_disk_still_closes(first_step):
+    """A smaller ``solver.first_step`` (what a user tries when a ramp fails) reaches the same
+    equilibrium as the default one. Session 55 solved every step to 1e-3 of its own load as
+    well: the flat MNY disk's first steps, under 1e-5 of the load, then never settled, and
+    the run stopped at 0 kPa (exit code 3)."""
+    from mvfem.scene import load_scene
+
+    def centre(fs: float) -> float:
+        scene = load_scene({"mesh": {"generator": "disk", "radius": 10.0, "size": 1.25},
+                            "region": [{"law": "mny", "params": "CP08"}],
+                            "solver": {"first_step": fs},
+                            "output": {"probes": [{"name": "c", "point": [0.0, 0.0, 0.0]}]}})
+        s = solve(scene, progress=False).summary
+        assert s["converged"], (fs, s["pressure_Pa"], s["stop_reason"])
+        return s["probes"]["c"]["displacement_mm"][2]
+
+    assert centre(first_step) == pytest.approx(centre(0.1), rel=1e-6)
+
+
 @pytest.mark.mpi
 def test_a_probe_off_the_surface_reads_the_closest_surface_point():
     """A probe off the surface (a curved leaflet's point between its flat facets, a
