@@ -25,13 +25,13 @@ def _passive_openmp() -> None:
 
 _passive_openmp()
 
-from mvfem.errors import InputError, SolverError
+from mvfem.errors import InputError, Interrupted, SolverError
 from mvfem.materials import ParameterSet, get_set, parameter_sets
 from mvfem.scene import Scene, load_scene
 
 __version__ = "0.1.0"
 
-__all__ = ["InputError", "SolverError", "ParameterSet", "get_set", "parameter_sets", "Scene",
+__all__ = ["InputError", "SolverError", "Interrupted", "ParameterSet", "get_set", "parameter_sets", "Scene",
            "load_scene", "solve", "Result", "__version__"]
 
 # solve() needs dolfinx; importing it lazily keeps `import mvfem.forms` free of dolfinx/PETSc

@@ -10,7 +10,7 @@ import logging
 import sys
 import time
 
-from mvfem.errors import InputError, SolverError
+from mvfem.errors import InputError, Interrupted, SolverError
 
 __all__ = ["main"]
 
@@ -238,7 +238,13 @@ def _solve_and_report(scene_path, changes, out) -> int:
     scene = load_scene(scene_path)
     if changes:
         scene = scene.with_changes(dict(parse_set_option(t) for t in changes))
-    result = solve(scene, out=out, progress=True)
+    stopped = None
+    try:
+        result = solve(scene, out=out, progress=True)
+    except Interrupted as e:  # Ctrl-C: the state reached is reported as any other
+        if not e.written:
+            raise
+        result, stopped = e.result, e
     s = result.summary
     _say(f"{'converged' if s['converged'] else 'NOT converged'}: {s['pressure_Pa'] / 1e3:g} kPa, "
          f"{s['load_steps']} load steps, {s['newton_iterations']} Newton iterations, "
@@ -253,6 +259,8 @@ def _solve_and_report(scene_path, changes, out) -> int:
 
     written = sorted(n for n in RUN_FILES if (out / n).is_file()) if out.is_dir() else []
     _say(f"wrote {out}: {', '.join(written)}")
+    if stopped is not None:
+        raise stopped
     check_converged(result)
     return 0
 
@@ -601,8 +609,8 @@ def main(argv: list[str] | None = None) -> int:
     except SolverError as e:
         _complain(f"mvfem: solver stopped: {e}")
         return 3
-    except KeyboardInterrupt:
-        print("mvfem: interrupted", file=sys.stderr, flush=True)
+    except KeyboardInterrupt as e:  # (Interrupted: what a solve stopped by Ctrl-C wrote)
+        print(f"mvfem: {e}" if str(e) else "mvfem: interrupted", file=sys.stderr, flush=True)
         return 130
     except Exception:
         _abort_the_job()

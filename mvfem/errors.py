@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["InputError", "SolverError"]
+__all__ = ["InputError", "SolverError", "Interrupted"]
 
 
 class InputError(ValueError):
@@ -14,3 +14,20 @@ class InputError(ValueError):
 
 class SolverError(RuntimeError):
     """The solver stopped short of the requested load: exit code 3."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C stopped a solve at a step boundary (:func:`mvfem.solver.stop_on_interrupt`):
+    raised by :func:`mvfem.solve` after its outputs, where it writes any, are written; the CLI
+    prints the message as one line and exits with code 130, like any Ctrl-C.
+
+    Attributes:
+        result: the :class:`mvfem.run.Result` of the state reached (the last accepted one),
+            or None where the stop came before the scene's own level (a coarser level of a
+            nested start; nothing written).
+        written: whether that state's outputs were written.
+    """
+
+    def __init__(self, message: str, result=None, written: bool = False):
+        super().__init__(message)
+        self.result, self.written = result, written

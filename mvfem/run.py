@@ -23,11 +23,11 @@ import numpy as np
 from mpi4py import MPI
 
 from mvfem import kernels
-from mvfem.errors import InputError, SolverError
+from mvfem.errors import InputError, Interrupted, SolverError
 from mvfem.model import MAX_EXPONENT, Model, build_model, default_size, lumped_mass
 from mvfem.scene import Scene, load_scene
 from mvfem.solver import (LoadStepper, PseudoTimeRecord, PseudoTransient, SNESProblem, SolveInfo,
-                          StepRecord)
+                          StepRecord, stop_asked, stop_on_interrupt)
 
 __all__ = ["solve", "Result", "check_converged", "coarse_levels"]
 
@@ -542,7 +542,10 @@ def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, loa
     t_reached = ramp(t_reached)
     stop_reason = stepper.stop_reason
     final_ok = False
-    if reached:
+    if reached and stop_asked():
+        stop_reason = (f"stopped by the user (Ctrl-C) after {len(stepper.history)} load steps, "
+                       "at full load but before the start-up stabiliser was removed")
+    elif reached:
         problem.set_tolerances(atol=tight_atol)
         final_ok, stop_reason = _remove_stabiliser(model, problem, stepper, step_solve, get_state,
                                                    set_state, last_converged, n_owned,
@@ -657,8 +660,15 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool, compare: boo
     else:
         if comm.rank == 0 and progress:
             log.info(f"coarse start: closing {what} first")
-        res = solve(_make(raw, scene.source, scene.base_dir), comm=comm, progress=progress,
-                    write=False, outputs=False, compare=compare)
+        try:
+            res = solve(_make(raw, scene.source, scene.base_dir), comm=comm, progress=progress,
+                        write=False, outputs=False, compare=compare)
+        except Interrupted as e:  # (from a level below this one: said there)
+            if e.result is None:
+                raise
+            raise Interrupted(f"stopped by the user (Ctrl-C) while closing {what} "
+                              f"({e.result.summary['cells']} cells) for a coarse start, before "
+                              "the scene's own mesh; nothing written") from None
     info = {**head, "converged": bool(res.converged),
             "steps": res.summary["newton_iterations"],
             "cells": res.summary["cells"], "wall_time_s": time.perf_counter() - t0}
@@ -953,75 +963,77 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
         log.info(f"{scene.data['title'] or scene.source}: {model.V.dofmap.index_map.size_global * 3} "
                  f"dofs, pressure {model.p_target / 1e3:g} kPa, {method}")
     ptc = hook = cap_raised_at = None
-    if method == "pseudo-time":
-        model.pressure.value = model.p_target
-        # a sequenced level's Newton's regime begins 1e4 x above the usual start's weight: the
-        # symmetric tangent's cheaper factorisation down to that (SYMMETRIC_ABOVE)
-        sequenced = seq is not None and seq["used"]
-        motion = _motion_ramp(model)
-        if motion is not None and not sequenced:  # (a sequenced level's is complete)
-            hook = _AdaptiveRamp(model, motion, lambda: ptc.history)
-            model.exponent_cap.value = MOTION_CAP
-        on_step = _PseudoTimeProgress(load_norm, progress)
-        k0 = model.stabiliser_scale
-        sym_above = SYMMETRIC_ABOVE * model.stabiliser_scale
-        if sequenced:
-            from mvfem.sequence import START_CAP, START_WEIGHT
+    # Ctrl-C stops at the next step; the last accepted state is written (stop_on_interrupt)
+    with stop_on_interrupt(comm) as stop:
+        if method == "pseudo-time":
+            model.pressure.value = model.p_target
+            # a sequenced level's Newton's regime begins 1e4 x above the usual start's weight: the
+            # symmetric tangent's cheaper factorisation down to that (SYMMETRIC_ABOVE)
+            sequenced = seq is not None and seq["used"]
+            motion = _motion_ramp(model)
+            if motion is not None and not sequenced:  # (a sequenced level's is complete)
+                hook = _AdaptiveRamp(model, motion, lambda: ptc.history)
+                model.exponent_cap.value = MOTION_CAP
+            on_step = _PseudoTimeProgress(load_norm, progress)
+            k0 = model.stabiliser_scale
+            sym_above = SYMMETRIC_ABOVE * model.stabiliser_scale
+            if sequenced:
+                from mvfem.sequence import START_CAP, START_WEIGHT
 
-            model.exponent_cap.value = START_CAP
-            on_step = _RaiseCap(on_step, model, seq)
-            k0 *= START_WEIGHT
-        nested = bool(sequenced and seq.get("nested"))
-        window = NESTED_CONVEX_WINDOW if nested else 0
-        ptc = PseudoTransient(problem, k0=k0, atol=tight_atol, symmetric=sequenced,
-                              convex_window=window,
-                              k_first=NESTED_FIRST_WEIGHT * k0 if nested else None,
-                              symmetric_above=sym_above, max_steps=max_steps, on_step=on_step,
-                              max_move=MAX_MOVE * model.length_scale, ramp=hook,
-                              ramp_steps=max_steps if hook is not None else 0)
-        info = ptc.run()
-        load_steps, newton_its = ptc.accepted_steps, len(ptc.history)
-        convexified, symmetric = ptc.convexified, ptc.symmetric_solves
-        cap = float(model.exponent_cap.value)
-        if cap != MAX_EXPONENT:
-            # the soft-capped problem's equilibrium: the true one only where no cell is
-            # beyond the cap; else go on with the true cap from here
-            relaxed = _relaxed(model, cap)
-            model.exponent_cap.value = MAX_EXPONENT
-            if seq is not None:
-                seq["cap_raised_at_step"] = newton_its
-            cap_raised_at = newton_its
-            if hook is not None and comm.rank == 0 and progress and info.converged:
-                log.info(f"  converged with the Fung laws' exponent capped at {cap:g} "
-                         f"(step {newton_its}); " + ("no cell is near the cap" if relaxed else
-                                                     "the true law goes on from there"))
-            if info.converged and not relaxed:
-                ptc = PseudoTransient(problem, k0=model.stabiliser_scale, atol=tight_atol,
-                                      symmetric=sequenced, symmetric_above=sym_above,
-                                      convex_window=window,
-                                      max_steps=max(max_steps - newton_its, 1),
-                                      on_step=_PseudoTimeProgress(load_norm, progress),
-                                      max_move=MAX_MOVE * model.length_scale)
-                info = ptc.run()
-                load_steps += ptc.accepted_steps
-                newton_its += len(ptc.history)
-                convexified += ptc.convexified
-                symmetric += ptc.symmetric_solves
-                if hook is not None and not info.converged:
-                    # a 32 mm ring on the dilated valve: capped equilibrium at step 433, then
-                    # the true law's exponent 42.5 at the annulus, a tangent whose diagonal
-                    # spans 8e15, and 1067 steps at dt ~ 1e-14 mm/Pa (README, "Repairs")
-                    ptc.stop_reason += (
-                        f"; it had converged with the Fung laws' exponent capped at "
-                        f"{cap:g} (step {cap_raised_at}), but with the true law the "
-                        f"largest exponent is {_max_exponent(model):.1f}: the prescribed motion "
-                        f"compresses or stretches cells far beyond the law's range (a ring "
-                        f"too small for this annulus? fibres that bear tension only: "
-                        f"region.fibre_compression = false)")
-        final_ok, stop_reason, t_reached = info.converged, ptc.stop_reason, 1.0
-    else:
-        final_ok, stop_reason, t_reached, load_steps, newton_its = _load_steps(
-            model, problem, s, max_steps, load_norm, tight_atol, mass, centre, progress)
+                model.exponent_cap.value = START_CAP
+                on_step = _RaiseCap(on_step, model, seq)
+                k0 *= START_WEIGHT
+            nested = bool(sequenced and seq.get("nested"))
+            window = NESTED_CONVEX_WINDOW if nested else 0
+            ptc = PseudoTransient(problem, k0=k0, atol=tight_atol, symmetric=sequenced,
+                                  convex_window=window,
+                                  k_first=NESTED_FIRST_WEIGHT * k0 if nested else None,
+                                  symmetric_above=sym_above, max_steps=max_steps, on_step=on_step,
+                                  max_move=MAX_MOVE * model.length_scale, ramp=hook,
+                                  ramp_steps=max_steps if hook is not None else 0)
+            info = ptc.run()
+            load_steps, newton_its = ptc.accepted_steps, len(ptc.history)
+            convexified, symmetric = ptc.convexified, ptc.symmetric_solves
+            cap = float(model.exponent_cap.value)
+            if cap != MAX_EXPONENT:
+                # the soft-capped problem's equilibrium: the true one only where no cell is
+                # beyond the cap; else go on with the true cap from here
+                relaxed = _relaxed(model, cap)
+                model.exponent_cap.value = MAX_EXPONENT
+                if seq is not None:
+                    seq["cap_raised_at_step"] = newton_its
+                cap_raised_at = newton_its
+                if hook is not None and comm.rank == 0 and progress and info.converged:
+                    log.info(f"  converged with the Fung laws' exponent capped at {cap:g} "
+                             f"(step {newton_its}); " + ("no cell is near the cap" if relaxed else
+                                                         "the true law goes on from there"))
+                if info.converged and not relaxed:
+                    ptc = PseudoTransient(problem, k0=model.stabiliser_scale, atol=tight_atol,
+                                          symmetric=sequenced, symmetric_above=sym_above,
+                                          convex_window=window,
+                                          max_steps=max(max_steps - newton_its, 1),
+                                          on_step=_PseudoTimeProgress(load_norm, progress),
+                                          max_move=MAX_MOVE * model.length_scale)
+                    info = ptc.run()
+                    load_steps += ptc.accepted_steps
+                    newton_its += len(ptc.history)
+                    convexified += ptc.convexified
+                    symmetric += ptc.symmetric_solves
+                    if hook is not None and not info.converged:
+                        # a 32 mm ring on the dilated valve: capped equilibrium at step 433, then
+                        # the true law's exponent 42.5 at the annulus, a tangent whose diagonal
+                        # spans 8e15, and 1067 steps at dt ~ 1e-14 mm/Pa (README, "Repairs")
+                        ptc.stop_reason += (
+                            f"; it had converged with the Fung laws' exponent capped at "
+                            f"{cap:g} (step {cap_raised_at}), but with the true law the "
+                            f"largest exponent is {_max_exponent(model):.1f}: the prescribed "
+                            f"motion compresses or stretches cells far beyond the law's range "
+                            f"(a ring too small for this annulus? fibres that bear tension only: "
+                            f"region.fibre_compression = false)")
+            final_ok, stop_reason, t_reached = info.converged, ptc.stop_reason, 1.0
+        else:
+            final_ok, stop_reason, t_reached, load_steps, newton_its = _load_steps(
+                model, problem, s, max_steps, load_norm, tight_atol, mass, centre, progress)
     problem.set_proximal(0.0)
     r_norm, f_norm = problem.residual_norm(), _load_norm(model)
     if abs(model.p_target) < 1e-12:
@@ -1053,7 +1065,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
               "contact_s": t_pt + t_lim, "build_s": t_build}
     if t_compare is not None:
         timing["level_change_s"] = t_compare
-    if comm.rank == 0 and not converged:
+    if comm.rank == 0 and not converged and not stop.asked:  # (Ctrl-C: _interrupted says it)
         log.warning(f"solver stopped short at p = {t_reached * model.p_target / 1e3:.4g} kPa "
                     f"({stop_reason}); the last converged state is kept")
     summary = {
@@ -1068,6 +1080,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
         "target_pressure_Pa": model.p_target,
         "equilibrium_residual": rel,
         "stop_reason": stop_reason,
+        # Ctrl-C stopped it short (stop_on_interrupt): a study makes such a run again
+        "interrupted": bool(stop.asked and not converged),
         "timing": timing,
     }
     if ptc is not None:
@@ -1093,13 +1107,29 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     if seq is not None:
         summary["coarse_start"] = seq
     result.summary = summary
-    if outputs and not (more is not None and more(result)):
+    # (after Ctrl-C no finer level follows: this level's state is the one to write)
+    if outputs and not (more is not None and not stop.asked and more(result)):
         with _Notice(comm, progress, f"  {'converged' if converged else 'stopped short'}; "
                      "computing stresses, strains and metrics ... (a first run also "
                      "compiles their forms, cached afterwards)").watch():
             write_outputs(result, problem, write=write and out is not None)
     problem.destroy()
+    if stop.asked:
+        raise _interrupted(result, written=bool(outputs and write and out is not None))
     return result
+
+
+def _interrupted(result: Result, written: bool) -> Interrupted:
+    """What Ctrl-C ended (:func:`mvfem.solver.stop_on_interrupt`), to raise once the outputs
+    are written."""
+    s = result.summary
+    where = f"written in {result.out}" if written else "not written"
+    if s["converged"]:
+        return Interrupted(f"Ctrl-C came as the run converged; its results are {where}",
+                           result, written)
+    return Interrupted(f"{s['stop_reason']}; the last accepted state (at "
+                       f"{s['pressure_Pa'] / 1e3:.4g} kPa, not converged: residual "
+                       f"{s['equilibrium_residual']:.3g} of the load) is {where}", result, written)
 
 
 def check_converged(result: Result) -> None:

@@ -9,7 +9,11 @@ it after easy steps.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -19,7 +23,8 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 __all__ = ["SNESProblem", "SolveInfo", "LoadStepper", "StepRecord", "PseudoTransient",
-           "PseudoTimeRecord", "DEFAULT_OPTIONS", "reason_name"]
+           "PseudoTimeRecord", "DEFAULT_OPTIONS", "reason_name", "stop_on_interrupt",
+           "stop_asked"]
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +48,66 @@ DEFAULT_OPTIONS = {
 _REASONS = {v: k for k, v in vars(PETSc.SNES.ConvergedReason).items() if isinstance(v, int)}
 #: double precision's unit roundoff (PseudoTransient.floor)
 EPS = float(np.finfo(float).eps)
+
+
+class _StopRequest:
+    """Whether Ctrl-C asked the solve under way to stop (:func:`stop_on_interrupt`)."""
+
+    def __init__(self) -> None:
+        self.asked = False
+        self.active = False
+
+
+_STOP = _StopRequest()
+
+#: what the first Ctrl-C of a solve says at once (the step under way may take a second)
+_STOP_LINE = (b"\nmvfem: Ctrl-C: stopping after this step and writing the last accepted state "
+              b"(Ctrl-C again stops at once, writing nothing)\n")
+
+
+def _on_sigint(signum, frame) -> None:
+    if _STOP.asked:  # the second: at once
+        raise KeyboardInterrupt
+    _STOP.asked = True
+    try:
+        os.write(2, _STOP_LINE)
+    except OSError:
+        pass
+
+
+@contextlib.contextmanager
+def stop_on_interrupt(comm):
+    """Within this context, the first Ctrl-C (SIGINT) asks the steppers to stop at their next
+    step (:func:`stop_asked`, checked by :class:`LoadStepper` and :class:`PseudoTransient`
+    before each step), which leaves the last accepted state in ``u`` for the caller to write;
+    a second one raises ``KeyboardInterrupt`` at once, as outside. Yields the request
+    (``.asked``, still readable after the context).
+
+    Only a serial run in the main thread whose SIGINT has Python's default handler does so:
+    under mpirun the ranks would reach their next step at different collective calls (and
+    mpirun ends the job on Ctrl-C anyway), and a program that handles SIGINT itself or ignores
+    it keeps its own. Nested contexts (a coarser level solved inside a finer one's set-up)
+    share the outermost's request."""
+    if _STOP.active:
+        yield _STOP
+        return
+    _STOP.asked = False
+    if (comm.size > 1 or threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield _STOP
+        return
+    previous = signal.signal(signal.SIGINT, _on_sigint)
+    _STOP.active = True
+    try:
+        yield _STOP
+    finally:
+        _STOP.active = False
+        signal.signal(signal.SIGINT, previous)
+
+
+def stop_asked() -> bool:
+    """Whether Ctrl-C asked the solve under way to stop (:func:`stop_on_interrupt`)."""
+    return _STOP.active and _STOP.asked
 
 
 def reason_name(reason: int) -> str:
@@ -583,6 +648,8 @@ class LoadStepper:
     on_step: Callable[[StepRecord, "LoadStepper"], None] | None = None
     history: list[StepRecord] = field(default_factory=list)
     stop_reason: str = ""
+    #: whether Ctrl-C stopped the run (:func:`stop_on_interrupt`)
+    interrupted: bool = False
 
     def run(self, target: float = 1.0, start: float = 0.0) -> tuple[bool, float]:
         """Advance to ``target``; returns (reached, last converged load).
@@ -594,6 +661,11 @@ class LoadStepper:
         saved = self.get_state()
         previous: tuple[float, np.ndarray] | None = None
         while t < target - 1e-14 and len(self.history) < self.max_steps:
+            if stop_asked():
+                self.interrupted = True
+                self.stop_reason = (f"stopped by the user (Ctrl-C) after {len(self.history)} "
+                                    "load steps")
+                break
             t_new = min(t + dt, target)
             if self.predictor and previous is not None:
                 t_old, u_old = previous
@@ -787,6 +859,8 @@ class PseudoTransient:
     floor: float = 0.0
     #: whether the run ended on the floor (its residual above ``atol``)
     at_floor: bool = False
+    #: whether Ctrl-C stopped the run (:func:`stop_on_interrupt`)
+    interrupted: bool = False
 
     def run(self) -> SolveInfo:
         """Advance from the problem's current ``u`` until ``||F|| <= atol``; ``u`` holds the
@@ -883,6 +957,11 @@ class PseudoTransient:
             extent = pb.comm.allreduce(float(np.abs(geometry).max(initial=0.0)), op=MPI.MAX)
             self.floor, self.at_floor = 0.0, False
             while r > max(self.atol, self.floor) or not ramped:
+                if stop_asked():  # x: the last accepted state
+                    self.interrupted = True
+                    self.stop_reason = (f"stopped by the user (Ctrl-C) after {its} "
+                                        "pseudo-time steps")
+                    break
                 if its >= self.max_steps:
                     self.stop_reason = (f"residual {r:.3g} above the tolerance {self.atol:.3g} "
                                         f"after {its} pseudo-time steps (solver.max_steps)")

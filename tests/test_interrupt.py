@@ -1,0 +1,258 @@
+"""Ctrl-C during a solve: the first stops the run at its next step and writes the last accepted
+state (summary.json ``"interrupted": true``, exit code 130); a second stops at once; a study
+makes an interrupted run again (README, "Running a scene": "Ctrl-C")."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from test_scripts import _env
+
+from mvfem.solver import stop_asked, stop_on_interrupt
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class _Comm:
+    def __init__(self, size: int):
+        self.size = size
+
+
+def _deliver(signum: int = signal.SIGINT) -> None:
+    """Send ``signum`` to this process and let Python run its handler (at the next bytecode
+    of the main thread)."""
+    os.kill(os.getpid(), signum)
+    for _ in range(100):
+        time.sleep(0.001)
+
+
+@pytest.fixture
+def default_sigint():
+    """Python's own SIGINT handler for the test (whatever the test runner set), then back."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+def test_the_first_ctrl_c_asks_the_second_raises_and_the_handler_goes_back(default_sigint):
+    with stop_on_interrupt(_Comm(1)) as stop:
+        assert not stop_asked()
+        _deliver()                       # no exception: a request
+        assert stop_asked() and stop.asked
+        with stop_on_interrupt(_Comm(1)):  # a coarser level's solve inside: the same request
+            assert stop_asked()
+        with pytest.raises(KeyboardInterrupt):
+            _deliver()                   # the second: at once
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert stop.asked and not stop_asked()  # readable afterwards; no solve under way
+    with stop_on_interrupt(_Comm(1)) as again:  # the next solve starts unasked
+        assert not again.asked
+    with pytest.raises(KeyboardInterrupt):  # outside any solve: Python's default
+        _deliver()
+
+
+def test_ctrl_c_is_left_alone_under_mpirun_and_where_the_program_handles_it(default_sigint):
+    with stop_on_interrupt(_Comm(2)):    # two ranks would stop at different collective calls
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        with pytest.raises(KeyboardInterrupt):
+            _deliver()
+    seen = []
+    old = signal.signal(signal.SIGINT, lambda s, f: seen.append(s))
+    try:
+        with stop_on_interrupt(_Comm(1)):  # a program's own handler stays
+            _deliver()
+            assert seen == [signal.SIGINT] and not stop_asked()
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def _run_and_interrupt(args: list[str], ready, tmp_path: Path, timeout: float = 120):
+    """``mvfem -v ARGS`` as a child; SIGINT once a line it prints satisfies ``ready``; (exit
+    code, its lines, stdout's and stderr's as they came). The child gets Python's default SIGINT handling whatever this process's."""
+    p = subprocess.Popen([sys.executable, "-m", "mvfem.cli", "-v", *args], cwd=tmp_path,
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                         env=_env(), preexec_fn=lambda: signal.signal(signal.SIGINT,
+                                                                        signal.SIG_DFL))
+    lines, sent, t0 = [], False, time.monotonic()
+    try:
+        for line in p.stdout:
+            lines.append(line.rstrip("\n"))
+            if not sent and ready(line):
+                p.send_signal(signal.SIGINT)
+                sent = True
+            if time.monotonic() - t0 > timeout:
+                break
+        rc = p.wait(timeout=max(timeout - (time.monotonic() - t0), 1))
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert sent, "\n".join(lines[-20:])
+    return rc, lines
+
+
+_PT = re.compile(r"^\s+pseudo-time step\s+(\d+)\s+residual\s+(\S+) of the load.*\b(ok|refused)\b")
+
+
+def test_ctrl_c_on_a_valve_writes_its_last_accepted_state(tmp_path):
+    """The 4 mm demo (184 pseudo-time steps) stopped by Ctrl-C at its 40th step: exit code
+    130, one closing line, and the outputs of the last accepted step: the steps its progress
+    lines counted, and the very state that the same run stopped there by ``solver.max_steps``
+    writes (the same path, step for step). The code before wrote nothing (exit 130, "mvfem:
+    interrupted")."""
+    out = tmp_path / "out"
+    demo = ["run", str(ROOT / "mvfem" / "data" / "demo.toml"), "--set", "mesh.size=4"]
+    rc, lines = _run_and_interrupt(
+        [*demo, "--out", str(out)],
+        lambda ln: (m := _PT.match(ln)) is not None and int(m.group(1)) >= 40, tmp_path)
+    text = "\n".join(lines[-30:])
+    assert rc == 130, text
+    assert lines[-1].startswith("mvfem: stopped by the user (Ctrl-C) after "), text
+    assert f"is written in {out}" in lines[-1], text
+    assert not any("Traceback" in ln for ln in lines), text
+    steps = [_PT.match(ln) for ln in lines if _PT.match(ln)]
+    accepted = [m for m in steps if m.group(3) == "ok"]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["converged"] is False and s["interrupted"] is True, s["stop_reason"]
+    assert s["stop_reason"] == f"stopped by the user (Ctrl-C) after {steps[-1].group(1)} " \
+                               "pseudo-time steps"
+    assert s["newton_iterations"] == int(steps[-1].group(1)) < 184
+    assert s["load_steps"] == len(accepted)
+    for name in ("fields.xdmf", "fields.h5", "chordae.csv"):
+        assert (out / name).is_file(), name
+    assert any(ln.startswith("NOT converged: 16 kPa") for ln in lines), text
+
+    capped = tmp_path / "capped"
+    r = subprocess.run([sys.executable, "-m", "mvfem.cli", *demo, "--set",
+                        f"solver.max_steps={s['newton_iterations']}", "--out", str(capped)],
+                       cwd=tmp_path, capture_output=True, text=True, env=_env(), timeout=120)
+    assert r.returncode == 3, r.stderr[-2000:]
+    c = json.loads((capped / "summary.json").read_text())
+    assert (c["newton_iterations"], c["load_steps"]) == (s["newton_iterations"], s["load_steps"])
+    for key in ("equilibrium_residual", "max_displacement_mm"):
+        assert s[key] == pytest.approx(c[key], rel=1e-9), key
+    assert s["valve"].keys() == c["valve"].keys()
+    for key, value in s["valve"].items():  # (those of an open valve: null, or numbers)
+        if isinstance(value, float):
+            assert value == pytest.approx(c["valve"][key], rel=1e-9, abs=1e-12), key
+        elif not isinstance(value, dict):
+            assert value == c["valve"][key], key
+
+
+def test_a_second_ctrl_c_stops_at_once_writing_nothing(tmp_path):
+    """Two Ctrl-C 0.1 s apart: the second ends the run where it is (within the step or while
+    the outputs are written: they take about a second), as Ctrl-C did before; no
+    summary.json, exit code 130."""
+    out = tmp_path / "out"
+
+    def ready(line: str) -> bool:
+        return (m := _PT.match(line)) is not None and int(m.group(1)) >= 40
+
+    p = subprocess.Popen([sys.executable, "-m", "mvfem.cli", "-v", "run",
+                          str(ROOT / "mvfem" / "data" / "demo.toml"), "--set", "mesh.size=4",
+                          "--out", str(out)], cwd=tmp_path, stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True, env=_env(),
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        for line in p.stdout:
+            if ready(line):
+                p.send_signal(signal.SIGINT)
+                time.sleep(0.1)  # (two at once are one: the kernel does not queue them)
+                p.send_signal(signal.SIGINT)
+                break
+        rest = p.stdout.read().splitlines()
+        rc = p.wait(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert rc == 130, "\n".join(rest[-20:])
+    assert rest[-1] == "mvfem: interrupted", "\n".join(rest[-20:])
+    assert not (out / "summary.json").exists()
+
+
+def test_ctrl_c_on_a_coarser_level_ends_the_run_writing_nothing(tmp_path):
+    """The 4 mm demo refined once closes the unrefined valve first (a nested start): Ctrl-C
+    there ends the whole run with a line that says so; the finer level does not start from
+    the open state, as it would after a coarser level that stopped short."""
+    out = tmp_path / "out"
+    rc, lines = _run_and_interrupt(
+        ["run", str(ROOT / "mvfem" / "data" / "demo.toml"), "--set", "mesh.size=4", "--set",
+         "mesh.refine=1", "--out", str(out)],
+        lambda ln: (m := _PT.match(ln)) is not None and int(m.group(1)) >= 40, tmp_path)
+    text = "\n".join(lines[-30:])
+    assert rc == 130, text
+    assert lines[-1] == ("mvfem: stopped by the user (Ctrl-C) while closing the unrefined "
+                         "valve (322 cells) for a coarse start, before the scene's own mesh; "
+                         "nothing written"), text
+    assert not any("continuing on" in ln for ln in lines), text
+    assert not (out / "summary.json").exists()
+
+
+_LS = re.compile(r"^\s+step\s+(\d+)\s+p =\s+(\S+) kPa\s+(ok|FAIL)")
+
+
+def test_ctrl_c_on_a_load_stepped_disk_keeps_its_last_converged_load(tmp_path):
+    """A flat CP08 disk ramped in 11 load steps (``first_step = 0.02``), stopped by Ctrl-C
+    after its 7th: the state written is the last accepted step's, at the pressure its
+    progress line gave, not converged."""
+    scene = tmp_path / "disk.toml"
+    scene.write_text('title = "disk"\n[mesh]\ngenerator = "disk"\nradius = 10.0\nsize = 1.25\n'
+                     '[[region]]\nlaw = "mny"\nparams = "CP08"\n[solver]\nfirst_step = 0.02\n')
+    out = tmp_path / "out"
+    rc, lines = _run_and_interrupt(
+        ["run", str(scene), "--out", str(out)],
+        lambda ln: (m := _LS.match(ln)) is not None and int(m.group(1)) >= 7, tmp_path)
+    text = "\n".join(lines[-30:])
+    assert rc == 130, text
+    assert lines[-1].startswith("mvfem: stopped by the user (Ctrl-C) after "), text
+    steps = [_LS.match(ln) for ln in lines if _LS.match(ln)]
+    ok = [m for m in steps if m.group(3) == "ok"]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["converged"] is False and s["interrupted"] is True
+    assert s["stop_reason"] == f"stopped by the user (Ctrl-C) after {len(steps)} load steps"
+    assert s["pressure_Pa"] / 1e3 == pytest.approx(float(ok[-1].group(2)), abs=5e-4)
+    assert 0 < s["pressure_Pa"] < 16000.0 and len(steps) < 11
+    assert (out / "fields.xdmf").is_file()
+
+
+def test_a_study_makes_a_run_that_ctrl_c_stopped_again(tmp_path):
+    """A run whose summary.json says ``interrupted`` (Ctrl-C wrote the state it had reached)
+    is still to make: not done when the study resumes, pending in results.csv, and not
+    recorded as finished when it exits 130 (the code before counted it done, "stopped")."""
+    from mvfem.outputs import write_json
+    from mvfem.study import (Case, RunSpec, Study, _finish, _Lock, _Running, _spec_record,
+                             collect_results, run_state)
+
+    spec = RunSpec(case="a", set="MNY-mean", anterior_set="MNY-mean", posterior_set="",
+                   scene="x", changes={}, regions=[])
+    d = spec.dir(tmp_path)
+    d.mkdir(parents=True)
+    write_json(_spec_record(spec), d / "run.json")
+    write_json({"converged": False, "interrupted": True, "pressure_Pa": 16000.0,
+                "stop_reason": "stopped by the user (Ctrl-C) after 40 pseudo-time steps"},
+               d / "summary.json")
+    study = Study(title="", cases=[Case("a", "x")], sets=[], processes=1, timeout_s=None,
+                  map_case="a", include_stopped=True, biaxial=False, runs=[spec])
+    assert run_state(spec, tmp_path) == "todo"
+    assert collect_results(study, tmp_path)[0]["status"] == "pending"
+
+    proc = subprocess.Popen([sys.executable, "-c", "raise SystemExit(130)"])
+    proc.wait()
+    running = _Running(spec, proc, time.perf_counter(), time.time(), open(d / "run.log", "w"),
+                       _Lock(d / ".lock"))
+    assert _finish(running, tmp_path, proc.returncode) is None
+    assert not (d / "status.json").exists() and run_state(spec, tmp_path) == "todo"
+    # the same summary without the mark: a run that stopped short, done
+    write_json({"converged": False, "pressure_Pa": 8000.0, "stop_reason": "x"},
+               d / "summary.json")
+    assert run_state(spec, tmp_path) == "done"
+    assert collect_results(study, tmp_path)[0]["status"] == "stopped"
