@@ -1019,7 +1019,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                     newton_its += len(ptc.history)
                     convexified += ptc.convexified
                     symmetric += ptc.symmetric_solves
-                    if hook is not None and not info.converged:
+                    if hook is not None and not info.converged and not ptc.interrupted:
                         # a 32 mm ring on the dilated valve: capped equilibrium at step 433, then
                         # the true law's exponent 42.5 at the annulus, a tangent whose diagonal
                         # spans 8e15, and 1067 steps at dt ~ 1e-14 mm/Pa (README, "Repairs")
