@@ -149,13 +149,31 @@ def _gather_region_values(model, fields) -> dict:
     return out
 
 
-def probe_displacements(model, probes: list) -> dict:
+def check_probes_reach(model, probes: list, source) -> None:
+    """Bad input (:class:`InputError`, exit code 2), said before anything is solved: a probe
+    farther from the surface than its closest cell's diameter, which would read nothing
+    (:func:`probe_displacements`). Collective."""
+    from mvfem.errors import InputError
+
+    found = probe_displacements(model, probes, warn=False)
+    for i, p in enumerate(probes):
+        r = found[p["name"]]
+        if r["displacement_mm"] is None:
+            raise InputError(
+                f"{source}: output.probes[{i}] ({p['name']!r}): point {p['point']} is "
+                f"{r['distance_mm']:.4g} mm from the surface, farther than its closest cell's "
+                "diameter (a probe reads the displacement of a surface point, in reference "
+                "coordinates)")
+
+
+def probe_displacements(model, probes: list, warn: bool = True) -> dict:
     """Displacement at each probe point (reference coordinates, on or near the surface).
 
     A point on a cell is evaluated there; a point off the surface (a curved leaflet's point
     between its flat facets, a sphere's) at the surface's closest point, where that lies
     within the diameter of its cell (``distance_mm`` says how far it was; 0 on the surface),
-    else not at all (``displacement_mm`` null, and a warning)."""
+    else not at all (``displacement_mm`` null, and a warning with ``warn``; a run refuses
+    such a probe before it solves: :func:`check_probes_reach`)."""
     import numpy as np
     from dolfinx import geometry
 
@@ -186,7 +204,7 @@ def probe_displacements(model, probes: list) -> dict:
         d, value = near[off.index(i)]
         result[p["name"]] = {"displacement_mm": None if value is None
                              else [float(c) for c in value], "distance_mm": d}
-        if value is None and msh.comm.rank == 0:
+        if value is None and warn and msh.comm.rank == 0:
             import logging
 
             logging.getLogger(__name__).warning(

@@ -931,6 +931,10 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                          "compiles its forms and kernels, cached afterwards)")
     with setting_up.watch():
         model = build_model(scene, comm)
+        if outputs and scene["output"]["probes"]:
+            from mvfem.outputs import check_probes_reach
+
+            check_probes_reach(model, scene["output"]["probes"], scene.source)
     t_build = time.perf_counter() - t_start
     seq = None
     if _nested(scene, model) or _coarse_size(scene) is not None:

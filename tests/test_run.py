@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ from mpi4py import MPI
 
 import mvfem.run as run_mod
 from mvfem.cli import main
+from mvfem.errors import InputError
 from mvfem.run import solve
 
 DISK = {"title": "coarse disk", "mesh": {"generator": "disk", "radius": 10.0, "size": 1.25},
@@ -1585,21 +1587,30 @@ def test_a_small_first_step_on_a_flat_fung_disk_still_closes(first_step):
 def test_a_probe_off_the_surface_reads_the_closest_surface_point():
     """A probe off the surface (a curved leaflet's point between its flat facets, a
     sphere's) reads the displacement at the surface's closest point when that lies within its
-    cell's diameter, and says how far it was; farther, it reads nothing. On a flat disk the
-    closest point of (x, y, h) is (x, y, 0): the probe 0.4 mm above a point must read that
-    point's displacement (evaluated on its cell) and a distance of 0.4 mm; 40 mm beyond the
-    rim, nothing. Until session 55 every point off the cells read nothing. Also under
-    ``mpirun -n 2``, where the closest cell may be another rank's."""
+    cell's diameter, and says how far it was; farther, the run refuses it as bad input
+    before it solves (session 56; session 55 solved and then read nothing there, with a
+    warning). On a flat disk the closest point of (x, y, h) is (x, y, 0): the probe 0.4 mm
+    above a point must read that point's displacement (evaluated on its cell) and a distance
+    of 0.4 mm; 40 mm beyond the rim (the disk's cells are at most 2.5 mm x 1.3 across), a
+    line that says how far. Until session 55 every point off the cells read nothing. Also
+    under ``mpirun -n 2``, where the closest cell may be another rank's."""
     from mvfem.scene import load_scene
 
     on, above = [1.3, 0.7, 0.0], [1.3, 0.7, 0.4]
-    scene = load_scene({"mesh": {"generator": "disk", "radius": 10.0, "size": 2.5},
-                        "region": [{"law": "svk", "params": "SVK"}],
-                        "output": {"probes": [
-                            {"name": "on", "point": on}, {"name": "above", "point": above},
-                            {"name": "centre", "point": [0.0, 0.0, 0.0]},
-                            {"name": "over_centre", "point": [0.0, 0.0, -0.4]},
-                            {"name": "far", "point": [50.0, 0.0, 0.0]}]}})
+    probes = [{"name": "on", "point": on}, {"name": "above", "point": above},
+              {"name": "centre", "point": [0.0, 0.0, 0.0]},
+              {"name": "over_centre", "point": [0.0, 0.0, -0.4]}]
+    disk = {"mesh": {"generator": "disk", "radius": 10.0, "size": 2.5},
+            "region": [{"law": "svk", "params": "SVK"}]}
+    far = load_scene({**disk, "output": {"probes": [*probes, {"name": "far",
+                                                              "point": [50.0, 0.0, 0.0]}]}})
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match=r"output\.probes\[4\] \('far'\): point \[50\.0, 0\.0, "
+                       r"0\.0\] is 40 mm from the surface, farther than its closest cell's "
+                       r"diameter"):
+        solve(far, progress=False)
+    assert time.perf_counter() - t0 < 5.0   # (refused before the solve)
+    scene = load_scene({**disk, "output": {"probes": probes}})
     p = solve(scene, progress=False).summary["probes"]
     assert p["on"]["distance_mm"] == 0.0 and p["centre"]["distance_mm"] == 0.0
     for name, at in (("above", "on"), ("over_centre", "centre")):
@@ -1607,5 +1618,3 @@ def test_a_probe_off_the_surface_reads_the_closest_surface_point():
         np.testing.assert_allclose(p[name]["displacement_mm"], p[at]["displacement_mm"],
                                    rtol=1e-9, atol=1e-12)
     assert abs(p["on"]["displacement_mm"][2]) > 1.0   # (a deflected disk, not a zero)
-    assert p["far"]["displacement_mm"] is None
-    assert p["far"]["distance_mm"] == pytest.approx(40.0, rel=1e-12)
