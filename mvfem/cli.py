@@ -241,7 +241,7 @@ def _solve_and_report(scene_path, changes, out) -> int:
     stopped = None
     try:
         result = solve(scene, out=out, progress=True)
-    except Interrupted as e:  # Ctrl-C: the state reached is reported as any other
+    except Interrupted as e:  # Ctrl-C, SIGTERM: the state reached is reported as any other
         if not e.written:
             raise
         result, stopped = e.result, e
@@ -609,9 +609,9 @@ def main(argv: list[str] | None = None) -> int:
     except SolverError as e:
         _complain(f"mvfem: solver stopped: {e}")
         return 3
-    except KeyboardInterrupt as e:  # (Interrupted: what a solve stopped by Ctrl-C wrote)
+    except KeyboardInterrupt as e:  # (Interrupted: what a solve stopped by a signal wrote)
         print(f"mvfem: {e}" if str(e) else "mvfem: interrupted", file=sys.stderr, flush=True)
-        return 130
+        return getattr(e, "exit_code", 130)
     except Exception:
         _abort_the_job()
         raise

@@ -27,7 +27,7 @@ from mvfem.errors import InputError, Interrupted, SolverError
 from mvfem.model import MAX_EXPONENT, Model, build_model, default_size, lumped_mass
 from mvfem.scene import Scene, load_scene
 from mvfem.solver import (LoadStepper, PseudoTimeRecord, PseudoTransient, SNESProblem, SolveInfo,
-                          StepRecord, stop_asked, stop_on_interrupt)
+                          StepRecord, stop_asked, stop_cause, stop_on_interrupt)
 
 __all__ = ["solve", "Result", "check_converged", "coarse_levels"]
 
@@ -543,7 +543,7 @@ def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, loa
     stop_reason = stepper.stop_reason
     final_ok = False
     if reached and stop_asked():
-        stop_reason = (f"stopped by the user (Ctrl-C) after {len(stepper.history)} load steps, "
+        stop_reason = (f"stopped by {stop_cause()} after {len(stepper.history)} load steps, "
                        "at full load but before the start-up stabiliser was removed")
     elif reached:
         problem.set_tolerances(atol=tight_atol)
@@ -666,9 +666,10 @@ def _coarse_start(scene: Scene, model: Model, comm, progress: bool, compare: boo
         except Interrupted as e:  # (from a level below this one: said there)
             if e.result is None:
                 raise
-            raise Interrupted(f"stopped by the user (Ctrl-C) while closing {what} "
+            raise Interrupted(f"stopped by {stop_cause()} while closing {what} "
                               f"({e.result.summary['cells']} cells) for a coarse start, before "
-                              "the scene's own mesh; nothing written") from None
+                              "the scene's own mesh; nothing written",
+                              exit_code=e.exit_code) from None
     info = {**head, "converged": bool(res.converged),
             "steps": res.summary["newton_iterations"],
             "cells": res.summary["cells"], "wall_time_s": time.perf_counter() - t0}
@@ -967,7 +968,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
         log.info(f"{scene.data['title'] or scene.source}: {model.V.dofmap.index_map.size_global * 3} "
                  f"dofs, pressure {model.p_target / 1e3:g} kPa, {method}")
     ptc = hook = cap_raised_at = None
-    # Ctrl-C stops at the next step; the last accepted state is written (stop_on_interrupt)
+    # Ctrl-C or SIGTERM stops at the next step; the last accepted state is written
+    # (stop_on_interrupt)
     with stop_on_interrupt(comm) as stop:
         if method == "pseudo-time":
             model.pressure.value = model.p_target
@@ -1069,7 +1071,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
               "contact_s": t_pt + t_lim, "build_s": t_build}
     if t_compare is not None:
         timing["level_change_s"] = t_compare
-    if comm.rank == 0 and not converged and not stop.asked:  # (Ctrl-C: _interrupted says it)
+    if comm.rank == 0 and not converged and not stop.asked:  # (a signal: _interrupted says it)
         log.warning(f"solver stopped short at p = {t_reached * model.p_target / 1e3:.4g} kPa "
                     f"({stop_reason}); the last converged state is kept")
     summary = {
@@ -1084,7 +1086,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
         "target_pressure_Pa": model.p_target,
         "equilibrium_residual": rel,
         "stop_reason": stop_reason,
-        # Ctrl-C stopped it short (stop_on_interrupt): a study makes such a run again
+        # Ctrl-C or SIGTERM stopped it short (stop_on_interrupt): a study makes it again
         "interrupted": bool(stop.asked and not converged),
         "timing": timing,
     }
@@ -1111,7 +1113,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     if seq is not None:
         summary["coarse_start"] = seq
     result.summary = summary
-    # (after Ctrl-C no finer level follows: this level's state is the one to write)
+    # (after a stop signal no finer level follows: this level's state is the one to write)
     if outputs and not (more is not None and not stop.asked and more(result)):
         with _Notice(comm, progress, f"  {'converged' if converged else 'stopped short'}; "
                      "computing stresses, strains and metrics ... (a first run also "
@@ -1124,16 +1126,19 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
 
 
 def _interrupted(result: Result, written: bool) -> Interrupted:
-    """What Ctrl-C ended (:func:`mvfem.solver.stop_on_interrupt`), to raise once the outputs
-    are written."""
+    """What Ctrl-C or SIGTERM ended (:func:`mvfem.solver.stop_on_interrupt`), to raise once
+    the outputs are written."""
+    from mvfem.solver import _STOP
+
     s = result.summary
     where = f"written in {result.out}" if written else "not written"
     if s["converged"]:
-        return Interrupted(f"Ctrl-C came as the run converged; its results are {where}",
-                           result, written)
+        return Interrupted(f"{_STOP.name} came as the run converged; its results are {where}",
+                           result, written, _STOP.exit_code)
     return Interrupted(f"{s['stop_reason']}; the last accepted state (at "
                        f"{s['pressure_Pa'] / 1e3:.4g} kPa, not converged: residual "
-                       f"{s['equilibrium_residual']:.3g} of the load) is {where}", result, written)
+                       f"{s['equilibrium_residual']:.3g} of the load) is {where}", result,
+                       written, _STOP.exit_code)
 
 
 def check_converged(result: Result) -> None:

@@ -24,7 +24,7 @@ from petsc4py import PETSc
 
 __all__ = ["SNESProblem", "SolveInfo", "LoadStepper", "StepRecord", "PseudoTransient",
            "PseudoTimeRecord", "DEFAULT_OPTIONS", "reason_name", "stop_on_interrupt",
-           "stop_asked"]
+           "stop_asked", "stop_cause"]
 
 log = logging.getLogger(__name__)
 
@@ -51,63 +51,99 @@ EPS = float(np.finfo(float).eps)
 
 
 class _StopRequest:
-    """Whether Ctrl-C asked the solve under way to stop (:func:`stop_on_interrupt`)."""
+    """Whether Ctrl-C or SIGTERM asked the solve under way to stop (:func:`stop_on_interrupt`);
+    ``signum``: which."""
 
     def __init__(self) -> None:
         self.asked = False
         self.active = False
+        self.signum: int | None = None
+
+    @property
+    def name(self) -> str:
+        """``Ctrl-C`` or ``SIGTERM``."""
+        return _name(self.signum or signal.SIGINT)
+
+    @property
+    def cause(self) -> str:
+        """Who stopped it, for the stop reason: ``the user (Ctrl-C)`` or ``SIGTERM``."""
+        return "the user (Ctrl-C)" if self.name == "Ctrl-C" else self.name
+
+    @property
+    def exit_code(self) -> int:
+        """The shell's code for a command that a signal stopped: 128 + its number."""
+        return 128 + int(self.signum or signal.SIGINT)
 
 
 _STOP = _StopRequest()
 
-#: what the first Ctrl-C of a solve says at once (the step under way may take a second)
-_STOP_LINE = (b"\nmvfem: Ctrl-C: stopping after this step and writing the last accepted state "
-              b"(Ctrl-C again stops at once, writing nothing)\n")
+#: the signals a serial solve stops on at its next step (:func:`stop_on_interrupt`), with
+#: Python's own disposition of each: Ctrl-C raises KeyboardInterrupt, SIGTERM ends the process
+_SIGNALS = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
 
 
-def _on_sigint(signum, frame) -> None:
-    if _STOP.asked:  # the second: at once
-        raise KeyboardInterrupt
-    _STOP.asked = True
-    try:
-        os.write(2, _STOP_LINE)
+def _name(signum: int) -> str:
+    return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+
+
+def _on_signal(signum, frame) -> None:
+    name = _name(signum)
+    if _STOP.asked:  # the second: at once, as without this handler
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+        return
+    _STOP.asked, _STOP.signum = True, signum
+    try:  # (the step under way may take a second)
+        os.write(2, f"\nmvfem: {name}: stopping after this step and writing the last accepted "
+                    f"state ({name} again stops at once, writing nothing)\n".encode())
     except OSError:
         pass
 
 
 @contextlib.contextmanager
 def stop_on_interrupt(comm):
-    """Within this context, the first Ctrl-C (SIGINT) asks the steppers to stop at their next
-    step (:func:`stop_asked`, checked by :class:`LoadStepper` and :class:`PseudoTransient`
-    before each step), which leaves the last accepted state in ``u`` for the caller to write;
-    a second one raises ``KeyboardInterrupt`` at once, as outside. Yields the request
-    (``.asked``, still readable after the context).
+    """Within this context, the first Ctrl-C (SIGINT) or SIGTERM (a batch system's time limit,
+    ``timeout``, ``kill``) asks the steppers to stop at their next step (:func:`stop_asked`,
+    checked by :class:`LoadStepper` and :class:`PseudoTransient` before each step), which
+    leaves the last accepted state in ``u`` for the caller to write; a second one acts at once,
+    as outside (Ctrl-C raises ``KeyboardInterrupt``, SIGTERM ends the process). Yields the
+    request (``.asked``, ``.cause``, ``.exit_code``; still readable after the context).
 
-    Only a serial run in the main thread whose SIGINT has Python's default handler does so:
-    under mpirun the ranks would reach their next step at different collective calls (and
-    mpirun ends the job on Ctrl-C anyway), and a program that handles SIGINT itself or ignores
-    it keeps its own. Nested contexts (a coarser level solved inside a finer one's set-up)
-    share the outermost's request."""
+    Only a serial run in the main thread does so, for each signal whose disposition is
+    Python's own: under mpirun the ranks would reach their next step at different collective
+    calls (and mpirun ends the job on Ctrl-C anyway), and a program that handles a signal
+    itself or ignores it keeps its own. Nested contexts (a coarser level solved inside a finer
+    one's set-up) share the outermost's request."""
     if _STOP.active:
         yield _STOP
         return
-    _STOP.asked = False
-    if (comm.size > 1 or threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+    _STOP.asked, _STOP.signum = False, None
+    mine = []
+    if comm.size == 1 and threading.current_thread() is threading.main_thread():
+        mine = [sig for sig, default in _SIGNALS.items() if signal.getsignal(sig) is default]
+    if not mine:
         yield _STOP
         return
-    previous = signal.signal(signal.SIGINT, _on_sigint)
+    previous = {sig: signal.signal(sig, _on_signal) for sig in mine}
     _STOP.active = True
     try:
         yield _STOP
     finally:
         _STOP.active = False
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def stop_asked() -> bool:
-    """Whether Ctrl-C asked the solve under way to stop (:func:`stop_on_interrupt`)."""
+    """Whether Ctrl-C or SIGTERM asked the solve under way to stop (:func:`stop_on_interrupt`)."""
     return _STOP.active and _STOP.asked
+
+
+def stop_cause() -> str:
+    """Who asked the solve to stop: ``the user (Ctrl-C)`` or ``SIGTERM``."""
+    return _STOP.cause
 
 
 def reason_name(reason: int) -> str:
@@ -648,7 +684,7 @@ class LoadStepper:
     on_step: Callable[[StepRecord, "LoadStepper"], None] | None = None
     history: list[StepRecord] = field(default_factory=list)
     stop_reason: str = ""
-    #: whether Ctrl-C stopped the run (:func:`stop_on_interrupt`)
+    #: whether Ctrl-C or SIGTERM stopped the run (:func:`stop_on_interrupt`)
     interrupted: bool = False
 
     def run(self, target: float = 1.0, start: float = 0.0) -> tuple[bool, float]:
@@ -663,7 +699,7 @@ class LoadStepper:
         while t < target - 1e-14 and len(self.history) < self.max_steps:
             if stop_asked():
                 self.interrupted = True
-                self.stop_reason = (f"stopped by the user (Ctrl-C) after {len(self.history)} "
+                self.stop_reason = (f"stopped by {stop_cause()} after {len(self.history)} "
                                     "load steps")
                 break
             t_new = min(t + dt, target)
@@ -859,7 +895,7 @@ class PseudoTransient:
     floor: float = 0.0
     #: whether the run ended on the floor (its residual above ``atol``)
     at_floor: bool = False
-    #: whether Ctrl-C stopped the run (:func:`stop_on_interrupt`)
+    #: whether Ctrl-C or SIGTERM stopped the run (:func:`stop_on_interrupt`)
     interrupted: bool = False
 
     def run(self) -> SolveInfo:
@@ -959,7 +995,7 @@ class PseudoTransient:
             while r > max(self.atol, self.floor) or not ramped:
                 if stop_asked():  # x: the last accepted state
                     self.interrupted = True
-                    self.stop_reason = (f"stopped by the user (Ctrl-C) after {its} "
+                    self.stop_reason = (f"stopped by {stop_cause()} after {its} "
                                         "pseudo-time steps")
                     break
                 if its >= self.max_steps:

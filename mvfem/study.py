@@ -27,12 +27,12 @@ region gets the posterior set of that name where one exists, otherwise the poste
 thickness replace the region's; the case's ``set`` changes apply after them.
 
 Resumable: a run is finished when its ``summary.json`` exists (mvfem writes it last and
-atomically), converged or not, unless Ctrl-C stopped it (``"interrupted": true``: the state it
-had reached, written on the way out, and a run still to make); a run that failed (crash,
-exception, timeout) is recorded in its ``status.json`` with the reason and is not repeated
-unless ``retry_failed``. A killed study run again picks up the runs that did not finish.
-``results.csv`` (one row per run) is rebuilt from the per-run files after every finished run,
-the figures and ``report.html`` at the end, each written atomically.
+atomically), converged or not, unless Ctrl-C or SIGTERM stopped it (``"interrupted":
+true``: the state it had reached, written on the way out, and a run still to make); a run
+that failed (crash, exception, timeout) is recorded in its ``status.json`` with the reason
+and is not repeated unless ``retry_failed``. A killed study run again picks up the runs that
+did not finish. ``results.csv`` (one row per run) is rebuilt from the per-run files after
+every finished run, the figures and ``report.html`` at the end, each written atomically.
 
 A case whose scene asks for ``mesh.accuracy`` has its sets closed on one mesh, the one its set
 needing the most refinements needs (:func:`one_mesh_runs`): parameter sets compared on
@@ -395,14 +395,14 @@ def _spec_record(spec: RunSpec) -> dict:
 
 
 def run_state(spec: RunSpec, out: Path) -> str:
-    """``done`` (summary.json of this very run exists, not one Ctrl-C stopped short),
+    """``done`` (summary.json of this very run exists, not one a signal stopped short),
     ``failed`` (recorded), or ``todo``."""
     d = spec.dir(out)
     if _read_json(d / "run.json") != _spec_record(spec):
         return "todo"  # never run, or run with other settings: its files are not this run's
     summary = _read_json(d / "summary.json") if (d / "summary.json").is_file() else None
     if summary is not None and not summary.get("interrupted"):
-        return "done"  # (one that Ctrl-C stopped short wrote its state, but is to do)
+        return "done"  # (one a signal stopped short wrote its state: to do)
     status = _read_json(d / "status.json")
     if status and status.get("status") == "failed":
         return "failed"
@@ -771,7 +771,7 @@ def _finish(r: _Running, out: Path, rc: int | None, reason: str | None = None) -
     r.log.close()
     summary = _read_json(d / "summary.json")
     elapsed = time.perf_counter() - r.started
-    # (a run stopped by Ctrl-C writes the state it reached, summary.json "interrupted")
+    # (a run stopped by Ctrl-C or SIGTERM writes the state it reached, summary.json "interrupted")
     stopped = summary is None or bool(summary.get("interrupted"))
     if reason is None and stopped and rc in _INTERRUPTED:
         r.lock.release()

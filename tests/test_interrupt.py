@@ -1,6 +1,7 @@
-"""Ctrl-C during a solve: the first stops the run at its next step and writes the last accepted
-state (summary.json ``"interrupted": true``, exit code 130); a second stops at once; a study
-makes an interrupted run again (README, "Running a scene": "Ctrl-C")."""
+"""Ctrl-C (or SIGTERM) during a solve: the first stops the run at its next step and writes the
+last accepted state (summary.json ``"interrupted": true``, exit code 130, 143 for SIGTERM); a
+second stops at once; a study makes an interrupted run again (README, "Running a scene":
+"Ctrl-C")."""
 
 from __future__ import annotations
 
@@ -36,10 +37,13 @@ def _deliver(signum: int = signal.SIGINT) -> None:
 
 @pytest.fixture
 def default_sigint():
-    """Python's own SIGINT handler for the test (whatever the test runner set), then back."""
+    """Python's own SIGINT and SIGTERM dispositions for the test (whatever the test runner
+    set), then back."""
     old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    old_term = signal.signal(signal.SIGTERM, signal.SIG_DFL)
     yield
     signal.signal(signal.SIGINT, old)
+    signal.signal(signal.SIGTERM, old_term)
 
 
 def test_the_first_ctrl_c_asks_the_second_raises_and_the_handler_goes_back(default_sigint):
@@ -57,6 +61,20 @@ def test_the_first_ctrl_c_asks_the_second_raises_and_the_handler_goes_back(defau
         assert not again.asked
     with pytest.raises(KeyboardInterrupt):  # outside any solve: Python's default
         _deliver()
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+def test_a_sigterm_asks_too(default_sigint):
+    """SIGTERM (a batch system's time limit, ``timeout``) asks as Ctrl-C does, and says so
+    (a second one ends the process: in ``test_a_second_ctrl_c_stops_at_once_writing_nothing``)."""
+    with stop_on_interrupt(_Comm(1)) as stop:
+        assert signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL  # (else it would kill)
+        _deliver(signal.SIGTERM)
+        assert stop_asked() and stop.cause == "SIGTERM" and stop.exit_code == 143
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    with stop_on_interrupt(_Comm(1)) as stop:
+        _deliver()
+        assert stop.cause == "the user (Ctrl-C)" and stop.exit_code == 130
 
 
 def test_ctrl_c_is_left_alone_under_mpirun_and_where_the_program_handles_it(default_sigint):
@@ -74,19 +92,29 @@ def test_ctrl_c_is_left_alone_under_mpirun_and_where_the_program_handles_it(defa
         signal.signal(signal.SIGINT, old)
 
 
-def _run_and_interrupt(args: list[str], ready, tmp_path: Path, timeout: float = 120):
-    """``mvfem -v ARGS`` as a child; SIGINT once a line it prints satisfies ``ready``; (exit
-    code, its lines, stdout's and stderr's as they came). The child gets Python's default SIGINT handling whatever this process's."""
+def _sigdfl() -> None:
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_DFL)
+
+
+def _run_and_interrupt(args: list[str], ready, tmp_path: Path, signals=(signal.SIGINT,),
+                       timeout: float = 120):
+    """``mvfem -v ARGS`` as a child; once a line it prints satisfies ``ready``, ``signals``
+    sent to it, 0.1 s apart (two at once are one: the kernel does not queue them); (exit
+    code, its lines, stdout's and stderr's as they came). The child gets the default
+    dispositions of SIGINT and SIGTERM whatever this process's."""
     p = subprocess.Popen([sys.executable, "-m", "mvfem.cli", "-v", *args], cwd=tmp_path,
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                         env=_env(), preexec_fn=lambda: signal.signal(signal.SIGINT,
-                                                                        signal.SIG_DFL))
+                         env=_env(), preexec_fn=_sigdfl)
     lines, sent, t0 = [], False, time.monotonic()
     try:
         for line in p.stdout:
             lines.append(line.rstrip("\n"))
             if not sent and ready(line):
-                p.send_signal(signal.SIGINT)
+                for k, sig in enumerate(signals):
+                    if k:
+                        time.sleep(0.1)
+                    p.send_signal(sig)
                 sent = True
             if time.monotonic() - t0 > timeout:
                 break
@@ -102,27 +130,31 @@ def _run_and_interrupt(args: list[str], ready, tmp_path: Path, timeout: float = 
 _PT = re.compile(r"^\s+pseudo-time step\s+(\d+)\s+residual\s+(\S+) of the load.*\b(ok|refused)\b")
 
 
-def test_ctrl_c_on_a_valve_writes_its_last_accepted_state(tmp_path):
+@pytest.mark.parametrize("sig, code, cause", [(signal.SIGINT, 130, "the user (Ctrl-C)"),
+                                               (signal.SIGTERM, 143, "SIGTERM")])
+def test_ctrl_c_on_a_valve_writes_its_last_accepted_state(tmp_path, sig, code, cause):
     """The 4 mm demo (184 pseudo-time steps) stopped by Ctrl-C at its 40th step: exit code
     130, one closing line, and the outputs of the last accepted step: the steps its progress
     lines counted, and the very state that the same run stopped there by ``solver.max_steps``
     writes (the same path, step for step). The code before wrote nothing (exit 130, "mvfem:
-    interrupted")."""
+    interrupted"). SIGTERM (a batch system's time limit, ``timeout``) likewise, exit code 143
+    (the code before: killed by it)."""
     out = tmp_path / "out"
     demo = ["run", str(ROOT / "mvfem" / "data" / "demo.toml"), "--set", "mesh.size=4"]
     rc, lines = _run_and_interrupt(
         [*demo, "--out", str(out)],
-        lambda ln: (m := _PT.match(ln)) is not None and int(m.group(1)) >= 40, tmp_path)
+        lambda ln: (m := _PT.match(ln)) is not None and int(m.group(1)) >= 40, tmp_path,
+        signals=(sig,))
     text = "\n".join(lines[-30:])
-    assert rc == 130, text
-    assert lines[-1].startswith("mvfem: stopped by the user (Ctrl-C) after "), text
+    assert rc == code, text
+    assert lines[-1].startswith(f"mvfem: stopped by {cause} after "), text
     assert f"is written in {out}" in lines[-1], text
     assert not any("Traceback" in ln for ln in lines), text
     steps = [_PT.match(ln) for ln in lines if _PT.match(ln)]
     accepted = [m for m in steps if m.group(3) == "ok"]
     s = json.loads((out / "summary.json").read_text())
     assert s["converged"] is False and s["interrupted"] is True, s["stop_reason"]
-    assert s["stop_reason"] == f"stopped by the user (Ctrl-C) after {steps[-1].group(1)} " \
+    assert s["stop_reason"] == f"stopped by {cause} after {steps[-1].group(1)} " \
                                "pseudo-time steps"
     assert s["newton_iterations"] == int(steps[-1].group(1)) < 184
     assert s["load_steps"] == len(accepted)
@@ -147,35 +179,20 @@ def test_ctrl_c_on_a_valve_writes_its_last_accepted_state(tmp_path):
             assert value == c["valve"][key], key
 
 
-def test_a_second_ctrl_c_stops_at_once_writing_nothing(tmp_path):
+@pytest.mark.parametrize("sig, code, last", [(signal.SIGINT, 130, "mvfem: interrupted"),
+                                              (signal.SIGTERM, -signal.SIGTERM, None)])
+def test_a_second_ctrl_c_stops_at_once_writing_nothing(tmp_path, sig, code, last):
     """Two Ctrl-C 0.1 s apart: the second ends the run where it is (within the step or while
     the outputs are written: they take about a second), as Ctrl-C did before; no
-    summary.json, exit code 130."""
+    summary.json, exit code 130. Two SIGTERM: killed by the second, as by one before."""
     out = tmp_path / "out"
-
-    def ready(line: str) -> bool:
-        return (m := _PT.match(line)) is not None and int(m.group(1)) >= 40
-
-    p = subprocess.Popen([sys.executable, "-m", "mvfem.cli", "-v", "run",
-                          str(ROOT / "mvfem" / "data" / "demo.toml"), "--set", "mesh.size=4",
-                          "--out", str(out)], cwd=tmp_path, stdout=subprocess.PIPE,
-                         stderr=subprocess.STDOUT, text=True, env=_env(),
-                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    try:
-        for line in p.stdout:
-            if ready(line):
-                p.send_signal(signal.SIGINT)
-                time.sleep(0.1)  # (two at once are one: the kernel does not queue them)
-                p.send_signal(signal.SIGINT)
-                break
-        rest = p.stdout.read().splitlines()
-        rc = p.wait(timeout=60)
-    finally:
-        if p.poll() is None:
-            p.kill()
-            p.wait()
-    assert rc == 130, "\n".join(rest[-20:])
-    assert rest[-1] == "mvfem: interrupted", "\n".join(rest[-20:])
+    rc, lines = _run_and_interrupt(
+        ["run", str(ROOT / "mvfem" / "data" / "demo.toml"), "--set", "mesh.size=4", "--out",
+         str(out)], lambda ln: (m := _PT.match(ln)) is not None and int(m.group(1)) >= 40,
+        tmp_path, signals=(sig, sig))
+    assert rc == code, "\n".join(lines[-20:])
+    if last is not None:
+        assert lines[-1] == last, "\n".join(lines[-20:])
     assert not (out / "summary.json").exists()
 
 
