@@ -585,7 +585,14 @@ def _import_gmsh_before_mpi() -> None:
     (ctypes.util.find_library) when imported; under an OpenMPI singleton (no mpirun) that
     child's exit, after MPI_Init, made `mvfem run` exit with code 1 and no message about one
     time in two (seen in the hard cases, issue 7: strace shows exit_group(1) right after the
-    ldconfig child's SIGCHLD)."""
+    ldconfig child's SIGCHLD).
+
+    gmsh 4.8's module also sets SIGINT to its system default when imported (restored by
+    ``gmsh.finalize()``): Ctrl-C then killed the process outright, until the first mesh was
+    made. The handler before the import is put back: a study's Ctrl-C killed the study
+    without its cleanup (its runs died with it, results.csv not rebuilt), and a run of an
+    imported mesh (no gmsh session) could not stop at its next step (session 56)."""
+    import signal
     import sys
 
     if "mpi4py.MPI" in sys.modules:
@@ -593,7 +600,11 @@ def _import_gmsh_before_mpi() -> None:
     import importlib.util
 
     if importlib.util.find_spec("gmsh") is not None:  # no gmsh: nothing to race with
+        before = signal.getsignal(signal.SIGINT)
         import gmsh  # noqa: F401
+
+        if before is not None:
+            signal.signal(signal.SIGINT, before)
 
 
 def main(argv: list[str] | None = None) -> int:
