@@ -621,7 +621,7 @@ def main(argv: list[str] | None = None) -> int:
         _complain(f"mvfem: solver stopped: {e}")
         return 3
     except KeyboardInterrupt as e:  # (Interrupted: what a solve stopped by a signal wrote)
-        print(f"mvfem: {e}" if str(e) else "mvfem: interrupted", file=sys.stderr, flush=True)
+        _complain(f"mvfem: {e}" if str(e) else "mvfem: interrupted")
         return getattr(e, "exit_code", 130)
     except Exception:
         _abort_the_job()

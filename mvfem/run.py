@@ -27,7 +27,8 @@ from mvfem.errors import InputError, Interrupted, SolverError
 from mvfem.model import MAX_EXPONENT, Model, build_model, default_size, lumped_mass
 from mvfem.scene import Scene, load_scene
 from mvfem.solver import (LoadStepper, PseudoTimeRecord, PseudoTransient, SNESProblem, SolveInfo,
-                          StepRecord, stop_asked, stop_cause, stop_on_interrupt)
+                          StepRecord, agree_on_stop, stop_asked, stop_cause,
+                          stop_on_interrupt)
 
 __all__ = ["solve", "Result", "check_converged", "coarse_levels"]
 
@@ -532,7 +533,7 @@ def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, loa
     stepper = LoadStepper(set_load, settle_solve, get_state, set_state,
                           first_step=s["first_step"], min_step=s["min_step"],
                           max_steps=max_steps, on_step=on_step,
-                          predictor=contact is None)  # an extrapolation could cross leaflets
+                          predictor=contact is None, comm=model.comm)  # an extrapolation could cross leaflets
     reached, t_reached = stepper.run(1.0)
     if not reached and t_reached > reportable[0]:  # (the steps since carried almost no load)
         t_reached = reportable[0]
@@ -542,7 +543,7 @@ def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, loa
     t_reached = ramp(t_reached)
     stop_reason = stepper.stop_reason
     final_ok = False
-    if reached and stop_asked():
+    if reached and stop_asked(model.comm):
         stop_reason = (f"stopped by {stop_cause()} after {len(stepper.history)} load steps, "
                        "at full load but before the start-up stabiliser was removed")
     elif reached:
@@ -970,7 +971,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     ptc = hook = cap_raised_at = None
     # Ctrl-C or SIGTERM stops at the next step; the last accepted state is written
     # (stop_on_interrupt)
-    with stop_on_interrupt(comm) as stop:
+    with stop_on_interrupt(comm):
         if method == "pseudo-time":
             model.pressure.value = model.p_target
             # a sequenced level's Newton's regime begins 1e4 x above the usual start's weight: the
@@ -1040,6 +1041,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
         else:
             final_ok, stop_reason, t_reached, load_steps, newton_its = _load_steps(
                 model, problem, s, max_steps, load_norm, tight_atol, mass, centre, progress)
+    # (every rank the same: a signal may have reached one after the steps' last check)
+    asked = agree_on_stop(comm)
     problem.set_proximal(0.0)
     r_norm, f_norm = problem.residual_norm(), _load_norm(model)
     if abs(model.p_target) < 1e-12:
@@ -1071,7 +1074,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
               "contact_s": t_pt + t_lim, "build_s": t_build}
     if t_compare is not None:
         timing["level_change_s"] = t_compare
-    if comm.rank == 0 and not converged and not stop.asked:  # (a signal: _interrupted says it)
+    if comm.rank == 0 and not converged and not asked:  # (a signal: _interrupted says it)
         log.warning(f"solver stopped short at p = {t_reached * model.p_target / 1e3:.4g} kPa "
                     f"({stop_reason}); the last converged state is kept")
     summary = {
@@ -1087,7 +1090,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
         "equilibrium_residual": rel,
         "stop_reason": stop_reason,
         # Ctrl-C or SIGTERM stopped it short (stop_on_interrupt): a study makes it again
-        "interrupted": bool(stop.asked and not converged),
+        "interrupted": bool(asked and not converged),
         "timing": timing,
     }
     if ptc is not None:
@@ -1114,13 +1117,13 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
         summary["coarse_start"] = seq
     result.summary = summary
     # (after a stop signal no finer level follows: this level's state is the one to write)
-    if outputs and not (more is not None and not stop.asked and more(result)):
+    if outputs and not (more is not None and not asked and more(result)):
         with _Notice(comm, progress, f"  {'converged' if converged else 'stopped short'}; "
                      "computing stresses, strains and metrics ... (a first run also "
                      "compiles their forms, cached afterwards)").watch():
             write_outputs(result, problem, write=write and out is not None)
     problem.destroy()
-    if stop.asked:
+    if asked:
         raise _interrupted(result, written=bool(outputs and write and out is not None))
     return result
 

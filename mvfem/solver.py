@@ -24,7 +24,7 @@ from petsc4py import PETSc
 
 __all__ = ["SNESProblem", "SolveInfo", "LoadStepper", "StepRecord", "PseudoTransient",
            "PseudoTimeRecord", "DEFAULT_OPTIONS", "reason_name", "stop_on_interrupt",
-           "stop_asked", "stop_cause"]
+           "stop_asked", "stop_cause", "agree_on_stop"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,7 @@ class _StopRequest:
         self.asked = False
         self.active = False
         self.signum: int | None = None
+        self.rank = 0  # (the line a signal prints is rank 0's)
 
     @property
     def name(self) -> str:
@@ -95,6 +96,8 @@ def _on_signal(signum, frame) -> None:
         os.kill(os.getpid(), signum)
         return
     _STOP.asked, _STOP.signum = True, signum
+    if _STOP.rank != 0:
+        return
     try:  # (the step under way may take a second)
         os.write(2, f"\nmvfem: {name}: stopping after this step and writing the last accepted "
                     f"state ({name} again stops at once, writing nothing)\n".encode())
@@ -111,17 +114,21 @@ def stop_on_interrupt(comm):
     as outside (Ctrl-C raises ``KeyboardInterrupt``, SIGTERM ends the process). Yields the
     request (``.asked``, ``.cause``, ``.exit_code``; still readable after the context).
 
-    Only a serial run in the main thread does so, for each signal whose disposition is
-    Python's own: under mpirun the ranks would reach their next step at different collective
-    calls (and mpirun ends the job on Ctrl-C anyway), and a program that handles a signal
-    itself or ignores it keeps its own. Nested contexts (a coarser level solved inside a finer
-    one's set-up) share the outermost's request."""
+    Only the main thread does so, for each signal whose disposition is Python's own: a
+    program that handles a signal itself or ignores it keeps its own. On several ranks the
+    steppers ask all of them (:func:`stop_asked` with their communicator, a collective call at
+    each step boundary), so every rank stops at the same step, whichever got the signal:
+    mpirun turns Ctrl-C into SIGTERM to every rank and kills them
+    ``odls_base_sigkill_timeout`` seconds later (1 by default in Open MPI 4; Slurm's KillWait,
+    30 s), so the outputs of a larger mesh need ``--mca odls_base_sigkill_timeout 30``. Nested
+    contexts (a coarser level solved inside a finer one's set-up) share the outermost's
+    request."""
     if _STOP.active:
         yield _STOP
         return
-    _STOP.asked, _STOP.signum = False, None
+    _STOP.asked, _STOP.signum, _STOP.rank = False, None, comm.rank
     mine = []
-    if comm.size == 1 and threading.current_thread() is threading.main_thread():
+    if threading.current_thread() is threading.main_thread():
         mine = [sig for sig, default in _SIGNALS.items() if signal.getsignal(sig) is default]
     if not mine:
         yield _STOP
@@ -136,9 +143,25 @@ def stop_on_interrupt(comm):
             signal.signal(sig, handler)
 
 
-def stop_asked() -> bool:
-    """Whether Ctrl-C or SIGTERM asked the solve under way to stop (:func:`stop_on_interrupt`)."""
-    return _STOP.active and _STOP.asked
+def stop_asked(comm=None) -> bool:
+    """Whether Ctrl-C or SIGTERM asked the solve under way to stop (:func:`stop_on_interrupt`).
+    With a communicator of several ranks, collective: whether it asked any of them, and then
+    the request is every rank's (the signal the same, SIGTERM where they differ)."""
+    if comm is None or comm.size == 1:
+        return _STOP.active and _STOP.asked
+    return agree_on_stop(comm, _STOP.active)
+
+
+def agree_on_stop(comm, active: bool = True) -> bool:
+    """Collective: make the request of every rank that of any (``active``: this rank's
+    request counts, inside :func:`stop_on_interrupt`); whether there is one. After the
+    context, the same for the steps' last one: a signal may reach one rank after the last
+    check."""
+    mine = int(_STOP.signum or 0) if (active and _STOP.asked) else 0
+    signum = comm.allreduce(mine, op=MPI.MAX) if comm.size > 1 else mine
+    if signum:
+        _STOP.asked, _STOP.signum = True, signum
+    return bool(signum)
 
 
 def stop_cause() -> str:
@@ -686,6 +709,8 @@ class LoadStepper:
     stop_reason: str = ""
     #: whether Ctrl-C or SIGTERM stopped the run (:func:`stop_on_interrupt`)
     interrupted: bool = False
+    #: the ranks that step together (a stop asked of any stops them all), or None: this one
+    comm: object = None
 
     def run(self, target: float = 1.0, start: float = 0.0) -> tuple[bool, float]:
         """Advance to ``target``; returns (reached, last converged load).
@@ -697,7 +722,7 @@ class LoadStepper:
         saved = self.get_state()
         previous: tuple[float, np.ndarray] | None = None
         while t < target - 1e-14 and len(self.history) < self.max_steps:
-            if stop_asked():
+            if stop_asked(self.comm):
                 self.interrupted = True
                 self.stop_reason = (f"stopped by {stop_cause()} after {len(self.history)} "
                                     "load steps")
@@ -993,7 +1018,7 @@ class PseudoTransient:
             extent = pb.comm.allreduce(float(np.abs(geometry).max(initial=0.0)), op=MPI.MAX)
             self.floor, self.at_floor = 0.0, False
             while r > max(self.atol, self.floor) or not ramped:
-                if stop_asked():  # x: the last accepted state
+                if stop_asked(pb.comm):  # x: the last accepted state
                     self.interrupted = True
                     self.stop_reason = (f"stopped by {stop_cause()} after {its} "
                                         "pseudo-time steps")

@@ -23,8 +23,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 class _Comm:
-    def __init__(self, size: int):
-        self.size = size
+    """A serial communicator's stand-in (one rank: no collective call is made)."""
+
+    def __init__(self, size: int = 1, rank: int = 0):
+        self.size, self.rank = size, rank
 
 
 def _deliver(signum: int = signal.SIGINT) -> None:
@@ -77,11 +79,14 @@ def test_a_sigterm_asks_too(default_sigint):
         assert stop.cause == "the user (Ctrl-C)" and stop.exit_code == 130
 
 
-def test_ctrl_c_is_left_alone_under_mpirun_and_where_the_program_handles_it(default_sigint):
-    with stop_on_interrupt(_Comm(2)):    # two ranks would stop at different collective calls
-        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-        with pytest.raises(KeyboardInterrupt):
+def test_ctrl_c_is_said_by_rank_0_and_left_to_a_program_that_handles_it(default_sigint,
+                                                                         capfd):
+    for rank in (1, 0):
+        with stop_on_interrupt(_Comm(1, rank)):
             _deliver()
+            assert stop_asked()
+        said = capfd.readouterr().err
+        assert said.count("mvfem: Ctrl-C: stopping after this step") == (rank == 0), said
     seen = []
     old = signal.signal(signal.SIGINT, lambda s, f: seen.append(s))
     try:
@@ -103,6 +108,59 @@ def test_importing_gmsh_leaves_ctrl_c_to_python():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        env=_env(), preexec_fn=_sigdfl, timeout=60)
     assert r.stdout.strip() == "True", r.stderr[-2000:]
+
+
+@pytest.mark.mpi
+def test_a_stop_asked_of_one_rank_is_every_ranks(default_sigint):
+    """SIGTERM to the last rank alone: at the next step boundary every rank is asked, with
+    the same cause (a collective check), so they stop at the same step."""
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    with stop_on_interrupt(comm) as stop:
+        assert not stop_asked(comm)
+        if comm.rank == comm.size - 1:
+            _deliver(signal.SIGTERM)
+        assert stop_asked(comm)
+        assert stop.cause == "SIGTERM" and stop.exit_code == 143
+
+
+def test_sigterm_to_the_ranks_of_an_mpirun_job_writes_the_last_accepted_state(tmp_path):
+    """``mpirun -n 2 mvfem -v run`` of the 4 mm demo, SIGTERM to each rank at the 40th
+    pseudo-time step (as Slurm signals its tasks at a time limit; mpirun does so itself
+    ``odls_base_sigkill_timeout`` seconds after a Ctrl-C): the ranks stop together and write
+    the last accepted state, said once; each exits 143. Until session 56 they died with
+    nothing written."""
+    from test_scripts import _mpirun
+
+    out = tmp_path / "out"
+    p = subprocess.Popen([*_mpirun(2), sys.executable, "-m", "mvfem.cli", "-v", "run",
+                          str(ROOT / "mvfem" / "data" / "demo.toml"), "--set", "mesh.size=4",
+                          "--out", str(out)], cwd=tmp_path, stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True, env=_env(), preexec_fn=_sigdfl)
+    lines, ranks = [], []
+    try:
+        for line in p.stdout:
+            lines.append(line.rstrip("\n"))
+            if not ranks and (m := _PT.match(line)) is not None and int(m.group(1)) >= 40:
+                ranks = subprocess.run(["pgrep", "-P", str(p.pid)], capture_output=True,
+                                       text=True).stdout.split()
+                for pid in ranks:
+                    os.kill(int(pid), signal.SIGTERM)
+        p.wait(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    text = "\n".join(lines[-30:])
+    assert len(ranks) == 2, (ranks, text)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["interrupted"] is True and s["converged"] is False, s["stop_reason"]
+    assert re.fullmatch(r"stopped by SIGTERM after \d+ pseudo-time steps", s["stop_reason"])
+    said = [ln for ln in lines if ln.startswith("mvfem: stopped by SIGTERM")]
+    assert len(said) == 1 and f"is written in {out}" in said[0], text
+    assert sum("stopping after this step" in ln for ln in lines) == 1, text
+    assert s["newton_iterations"] < 184 and p.returncode != 0
 
 
 def _sigdfl() -> None:
