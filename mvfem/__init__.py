@@ -31,8 +31,8 @@ from mvfem.scene import Scene, load_scene
 
 __version__ = "0.1.0"
 
-__all__ = ["InputError", "SolverError", "Interrupted", "ParameterSet", "get_set", "parameter_sets", "Scene",
-           "load_scene", "solve", "Result", "__version__"]
+__all__ = ["InputError", "SolverError", "Interrupted", "ParameterSet", "get_set",
+           "parameter_sets", "Scene", "load_scene", "solve", "Result", "__version__"]
 
 # solve() needs dolfinx; importing it lazily keeps `import mvfem.forms` free of dolfinx/PETSc
 _LAZY = {"solve": "mvfem.run", "Result": "mvfem.run"}

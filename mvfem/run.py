@@ -533,7 +533,8 @@ def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, loa
     stepper = LoadStepper(set_load, settle_solve, get_state, set_state,
                           first_step=s["first_step"], min_step=s["min_step"],
                           max_steps=max_steps, on_step=on_step,
-                          predictor=contact is None, comm=model.comm)  # an extrapolation could cross leaflets
+                          # (an extrapolation could cross leaflets)
+                          predictor=contact is None, comm=model.comm)
     reached, t_reached = stepper.run(1.0)
     if not reached and t_reached > reportable[0]:  # (the steps since carried almost no load)
         t_reached = reportable[0]
@@ -971,11 +972,11 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     ptc = hook = cap_raised_at = None
     # Ctrl-C or SIGTERM stops at the next step; the last accepted state is written
     # (stop_on_interrupt)
-    with stop_on_interrupt(comm):
+    with stop_on_interrupt(comm) as stop:
         if method == "pseudo-time":
             model.pressure.value = model.p_target
-            # a sequenced level's Newton's regime begins 1e4 x above the usual start's weight: the
-            # symmetric tangent's cheaper factorisation down to that (SYMMETRIC_ABOVE)
+            # a sequenced level's Newton's regime begins 1e4 x above the usual start's weight:
+            # the symmetric tangent's cheaper factorisation down to that (SYMMETRIC_ABOVE)
             sequenced = seq is not None and seq["used"]
             motion = _motion_ramp(model)
             if motion is not None and not sequenced:  # (a sequenced level's is complete)
@@ -1124,24 +1125,22 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
             write_outputs(result, problem, write=write and out is not None)
     problem.destroy()
     if asked:
-        raise _interrupted(result, written=bool(outputs and write and out is not None))
+        raise _interrupted(result, bool(outputs and write and out is not None), stop)
     return result
 
 
-def _interrupted(result: Result, written: bool) -> Interrupted:
-    """What Ctrl-C or SIGTERM ended (:func:`mvfem.solver.stop_on_interrupt`), to raise once
-    the outputs are written."""
-    from mvfem.solver import _STOP
-
+def _interrupted(result: Result, written: bool, stop) -> Interrupted:
+    """What Ctrl-C or SIGTERM ended (``stop``, the request of
+    :func:`mvfem.solver.stop_on_interrupt`), to raise once the outputs are written."""
     s = result.summary
     where = f"written in {result.out}" if written else "not written"
     if s["converged"]:
-        return Interrupted(f"{_STOP.name} came as the run converged; its results are {where}",
-                           result, written, _STOP.exit_code)
+        return Interrupted(f"{stop.name} came as the run converged; its results are {where}",
+                           result, written, stop.exit_code)
     return Interrupted(f"{s['stop_reason']}; the last accepted state (at "
                        f"{s['pressure_Pa'] / 1e3:.4g} kPa, not converged: residual "
                        f"{s['equilibrium_residual']:.3g} of the load) is {where}", result,
-                       written, _STOP.exit_code)
+                       written, stop.exit_code)
 
 
 def check_converged(result: Result) -> None:
