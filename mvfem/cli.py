@@ -229,9 +229,16 @@ def accuracy_line(acc: dict) -> str:
             f"time(s){moved}{why}")
 
 
-def _solve_and_report(scene_path, changes, out) -> int:
-    """Solve a scene (with ``--set`` changes) into ``out``; report on the terminal; exit 3
-    when the solver stopped short. Shared by ``mvfem run`` and ``mvfem demo``."""
+#: ``--resume`` of ``mvfem run`` and ``mvfem demo``
+_RESUME_HELP = ("start from the state an earlier run of the same mesh wrote in DIR (one that "
+                "stopped short, was stopped by Ctrl-C, or ran at another pressure); DIR may "
+                "be --out")
+
+
+def _solve_and_report(scene_path, changes, out, resume=None) -> int:
+    """Solve a scene (with ``--set`` changes) into ``out`` (from the state an earlier run wrote
+    in ``resume``); report on the terminal; exit 3 when the solver stopped short. Shared by
+    ``mvfem run`` and ``mvfem demo``."""
     from mvfem.run import check_converged, solve
     from mvfem.scene import load_scene, parse_set_option
 
@@ -240,7 +247,7 @@ def _solve_and_report(scene_path, changes, out) -> int:
         scene = scene.with_changes(dict(parse_set_option(t) for t in changes))
     stopped = None
     try:
-        result = solve(scene, out=out, progress=True)
+        result = solve(scene, out=out, progress=True, resume=resume)
     except Interrupted as e:  # Ctrl-C, SIGTERM: the state reached is reported as any other
         if not e.written:
             raise
@@ -269,14 +276,14 @@ def _cmd_run(args) -> int:
     from pathlib import Path
 
     out = Path(args.out) if args.out else Path("results") / Path(args.scene).stem
-    return _solve_and_report(args.scene, args.set, out)
+    return _solve_and_report(args.scene, args.set, out, args.resume)
 
 
 def _cmd_demo(args) -> int:
     from pathlib import Path
 
     return _solve_and_report(Path(__file__).parent / "data" / "demo.toml", args.set,
-                             Path(args.out))
+                             Path(args.out), args.resume)
 
 
 #: what ``mvfem mesh KIND`` generates
@@ -492,12 +499,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="output directory (default: results/<scene name>)")
     r.add_argument("--set", action="append", metavar="KEY.PATH=VALUE",
                    help="change a scene value, e.g. --set load.pressure='\"120 mmHg\"' (repeatable)")
+    r.add_argument("--resume", metavar="DIR", help=_RESUME_HELP)
     r.set_defaults(func=_cmd_run)
 
     d = sub.add_parser("demo", help="close the built-in parametric valve (MNY mean, 16 kPa)")
     d.add_argument("--out", default="results/demo", help="output directory (default results/demo)")
     d.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="change a key of the built-in scene, e.g. --set mesh.size=1.0")
+    d.add_argument("--resume", metavar="DIR", help=_RESUME_HELP)
     d.set_defaults(func=_cmd_demo)
 
     g = sub.add_parser("mesh", help="write a generated mesh, or a scene's (any meshio format)")

@@ -303,6 +303,68 @@ def write_xdmf(model, fields: dict, path) -> None:
             f.write_function(fn)
 
 
+def read_state(model, directory, option: str = "--resume") -> dict:
+    """Set ``model.u`` to the displacement an earlier run of the same mesh wrote in
+    ``directory`` (its ``fields.h5``: the P1 displacement at the mesh's nodes, matched to this
+    mesh's nodes by their reference coordinates; interpolated into a P2 space); that run's
+    summary. Collective.
+
+    Raises:
+        InputError: no such run, no displacement written (``output.xdmf = false``), or another
+            mesh (its cell count or a node that is not this mesh's).
+    """
+    import numpy as np
+    from dolfinx import fem
+    from mpi4py import MPI
+    from scipy.spatial import cKDTree
+
+    d = Path(directory)
+    comm = model.comm
+    where = f"{option} {d}"
+    error = written = None
+    if comm.rank == 0:
+        summary, h5 = d / "summary.json", d / "fields.h5"
+        try:
+            written = json.loads(summary.read_text())
+        except (OSError, ValueError):
+            written = None
+        if not isinstance(written, dict):
+            error = f"{where}: no run's summary.json there"
+        elif not h5.is_file():
+            error = (f"{where}: no fields.h5 there (the state is written with output.xdmf = "
+                     "true, the default)")
+        else:
+            cells = model.mesh.topology.index_map(2).size_global
+            if written.get("cells") != cells:
+                error = (f"{where}: a run of {written.get('cells')} cells, this scene has "
+                         f"{cells} (the same mesh is needed: the same mesh keys and refine)")
+    error, written = comm.bcast((error, written if error is None else None), root=0)
+    if error:
+        raise InputError(error)
+    import h5py
+
+    with h5py.File(d / "fields.h5", "r") as f:  # (every rank reads it: a few MB at most)
+        xw = np.asarray(f["Mesh/mesh/geometry"])
+        uw = np.asarray(f["Function/displacement/0"])
+    x = model.mesh.geometry.x
+    extent = float(np.abs(xw).max(initial=1.0))
+    dist, row = cKDTree(xw).query(x)
+    far = comm.allreduce(float(dist.max(initial=0.0)), op=MPI.MAX)
+    if far > 1e-9 * extent:
+        raise InputError(f"{where}: another mesh (a node of this one is {far:.3g} mm from "
+                         "every node written there)")
+    # P1: a cell's dofs and its vertices (its first three geometry nodes) in the same order
+    V1 = fem.VectorFunctionSpace(model.mesh, ("Lagrange", 1))
+    u1 = fem.Function(V1)
+    geo = model.mesh.geometry.dofmap
+    nodes = geo.array.reshape(geo.num_nodes, -1)[:, :3].ravel()
+    dofs = V1.dofmap.list.array
+    u1.x.array.reshape(-1, V1.dofmap.index_map_bs)[dofs] = uw[row[nodes]]
+    model.u.interpolate(u1)
+    model.u.x.scatter_forward()
+    return written
+
+
 def _point_outputs(model, contact: bool = True) -> dict:
     """Contact penetration (``contact``) and valve metrics (collective; the same dict on every
     rank)."""

@@ -169,6 +169,8 @@ def _petsc_options(model: Model, load_norm: float) -> dict:
 #: load parameter t in [0, 1] -> fraction of the pressure. A membrane's deflection grows like
 #: p^(1/3) from the flat state, so the cubic ramp takes steps of similar displacement.
 _RAMPS = {"linear": lambda t: t, "cubic": lambda t: t**3}
+#: the load parameter of a share of the load (a resumed run's start, ``solve(resume=...)``)
+_RAMP_INVERSES = {"linear": lambda f: f, "cubic": lambda f: f ** (1.0 / 3.0)}
 
 
 class _Progress:
@@ -412,22 +414,23 @@ STEP_OWN_LOAD = 1e-3
 
 
 def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, load_norm: float,
-                tight_atol: float, mass, centre, progress: bool):
-    """Ramp the pressure; every load step settles in pseudo-time with proximal solves, then
-    the stabiliser is removed at full load. Returns (success, stop reason, load fraction
-    reached, accepted steps, Newton iterations)."""
+                tight_atol: float, mass, centre, progress: bool, start: float = 0.0):
+    """Ramp the pressure (from the load parameter ``start``: a resumed run's); every load step
+    settles in pseudo-time with proximal solves, then the stabiliser is removed at full load.
+    Returns (success, stop reason, load fraction reached, accepted steps, Newton
+    iterations)."""
     u = model.u
     n_owned = u.vector.getLocalSize()
     ramp = _RAMPS[s["ramp"]]
     last_converged = [u.x.array[:n_owned].copy()]  # the proximal centre
 
     motion = _motion_ramp(model)
-    t_now = [0.0]
+    t_now = [start]
     step_atol = max(tight_atol, s["step_tolerance"] * load_norm)
     # the last accepted step that is an equilibrium of its own load to STEP_OWN_LOAD (load
     # parameter, state): what a run that stops short reports (with a prescribed motion, the
     # last accepted step, whatever its load)
-    reportable = [0.0, u.x.array[:n_owned].copy()]
+    reportable = [start, u.x.array[:n_owned].copy()]
 
     def set_load(t: float) -> None:
         t_now[0] = t
@@ -535,7 +538,9 @@ def _load_steps(model: Model, problem: SNESProblem, s: dict, max_steps: int, loa
                           max_steps=max_steps, on_step=on_step,
                           # (an extrapolation could cross leaflets)
                           predictor=contact is None, comm=model.comm)
-    reached, t_reached = stepper.run(1.0)
+    if start > 0.0:
+        set_load(start)  # (a resumed run's load: the start of the ramp and of its tolerances)
+    reached, t_reached = stepper.run(1.0, start)
     if not reached and t_reached > reportable[0]:  # (the steps since carried almost no load)
         t_reached = reportable[0]
         u.x.array[:n_owned] = reportable[1]
@@ -788,8 +793,15 @@ def _relaxed(model: Model, cap: float) -> bool:
 def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COMM_WORLD,
           progress: bool = True, write: bool = True,
           initial: np.ndarray | None = None, outputs: bool = True,
-          compare: bool | None = None) -> Result:
+          compare: bool | None = None, resume: str | Path | None = None) -> Result:
     """Solve ``scene`` (collective on ``comm``); write outputs to ``out`` when given.
+
+    ``resume``: the output directory of an earlier run of the same mesh (one that stopped
+    short, was stopped by Ctrl-C, or converged at another pressure): the solve starts from the
+    state written there (:func:`mvfem.outputs.read_state`), on the scene's own mesh alone (no
+    coarser levels), load steps from the pressure that run reached (a pseudo-time run at the
+    full pressure in any case). Not with a prescribed motion (its ramp starts from the open
+    state) nor ``mesh.accuracy``.
 
     ``initial``: a warm start, the local displacement array (``result.u.x.array``) of an earlier
     solve of the same mesh on the same ranks, e.g. the previous evaluation of a calibration. It
@@ -824,9 +836,13 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     with kernels.one_blas_thread():
         scene = load_scene(scene)
         if scene["mesh"]["accuracy"] is not None:
+            if resume is not None:
+                raise InputError(f"--resume {resume}: {scene.source} asks for mesh.accuracy, "
+                                 "which closes the valve level by level from the open state; "
+                                 "resume a run of one mesh (mesh.refine)")
             return _solve_to_accuracy(scene, out, comm, progress, write, outputs)
         return _solve(scene, out, comm, progress, write, initial, outputs,
-                      outputs if compare is None else compare)
+                      outputs if compare is None else compare, resume=resume)
 
 
 def _solve_to_accuracy(scene: Scene, out, comm, progress: bool, write: bool,
@@ -917,10 +933,10 @@ class _Notice:
 
 def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool,
            compare: bool, coarse: Result | None = None,
-           more: Callable[[Result], bool] | None = None) -> Result:
+           more: Callable[[Result], bool] | None = None, resume=None) -> Result:
     """:func:`solve`'s body. ``coarse``: the next coarser level already closed (nested
     levels); ``more(result)``: called before the outputs, True where a finer level follows,
-    and then none are made (:func:`_solve_to_accuracy`)."""
+    and then none are made (:func:`_solve_to_accuracy`); ``resume``: :func:`solve`'s."""
     from mvfem.outputs import prepare_out_on_root, write_outputs
 
     t_start = time.perf_counter()
@@ -938,9 +954,13 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
             from mvfem.outputs import check_probes_reach
 
             check_probes_reach(model, scene["output"]["probes"], scene.source)
+        resumed = None
+        if resume is not None:
+            resumed = _resume(scene, model, resume)
+            initial = None
     t_build = time.perf_counter() - t_start
     seq = None
-    if _nested(scene, model) or _coarse_size(scene) is not None:
+    if resumed is None and (_nested(scene, model) or _coarse_size(scene) is not None):
         seq = _coarse_start(scene, model, comm, progress, compare, coarse=coarse)
     if seq is not None and seq["used"]:
         initial = None
@@ -1040,8 +1060,13 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                             f"region.fibre_compression = false)")
             final_ok, stop_reason, t_reached = info.converged, ptc.stop_reason, 1.0
         else:
+            start = 0.0
+            if resumed is not None and model.p_target != 0.0:  # from the pressure it reached
+                share = resumed["pressure_Pa"] / model.p_target
+                start = _RAMP_INVERSES[s["ramp"]](min(share, 1.0)) if share > 0 else 0.0
             final_ok, stop_reason, t_reached, load_steps, newton_its = _load_steps(
-                model, problem, s, max_steps, load_norm, tight_atol, mass, centre, progress)
+                model, problem, s, max_steps, load_norm, tight_atol, mass, centre, progress,
+                start)
     # (every rank the same: a signal may have reached one after the steps' last check)
     asked = agree_on_stop(comm)
     problem.set_proximal(0.0)
@@ -1116,6 +1141,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
             summary["motion"]["on_coarser_level"] = True
     if seq is not None:
         summary["coarse_start"] = seq
+    if resumed is not None:
+        summary["resumed_from"] = resumed
     result.summary = summary
     # (after a stop signal no finer level follows: this level's state is the one to write)
     if outputs and not (more is not None and not asked and more(result)):
@@ -1127,6 +1154,20 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     if asked:
         raise _interrupted(result, bool(outputs and write and out is not None), stop)
     return result
+
+
+def _resume(scene: Scene, model: Model, directory) -> dict:
+    """Start from the state an earlier run of this mesh wrote in ``directory``; what summary.json
+    ``resumed_from`` records of it (collective)."""
+    from mvfem.outputs import read_state
+
+    if model.motion:
+        raise InputError(f"--resume {directory}: {scene.source} prescribes a boundary motion, "
+                         "whose ramp starts from the open state: it cannot resume")
+    written = read_state(model, directory)
+    return {"directory": str(directory), "pressure_Pa": float(written.get("pressure_Pa") or 0.0),
+            "converged": bool(written.get("converged")),
+            "newton_iterations": written.get("newton_iterations")}
 
 
 def _interrupted(result: Result, written: bool, stop) -> Interrupted:

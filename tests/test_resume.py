@@ -1,0 +1,109 @@
+"""``mvfem run --resume DIR``: a run starts from the state an earlier run of the same mesh wrote
+(README, "Running a scene": "Resuming a run")."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from mvfem.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = str(ROOT / "mvfem" / "data" / "demo.toml")
+
+
+def _u(d: Path) -> np.ndarray:
+    with h5py.File(d / "fields.h5", "r") as f:
+        return np.asarray(f["Function/displacement/0"])
+
+
+def _summary(d: Path) -> dict:
+    return json.loads((d / "summary.json").read_text())
+
+
+@pytest.mark.mpi
+def test_a_valve_stopped_short_resumes_to_the_closure_of_an_uninterrupted_run(shared_tmp):
+    """The 4 mm demo stopped after 60 pseudo-time steps (``solver.max_steps``, exit code 3),
+    then resumed from the state it wrote, into the same directory: it converges to the
+    closure of the demo run without a stop (every node to 1e-5 mm; both are converged to
+    1e-8 of the load), in fewer steps than that run took from the open state, so it did start
+    from the written state. Also under ``mpirun -n 2`` (each rank matches its own nodes)."""
+    tmp_path = shared_tmp
+    part = tmp_path / "part"
+    small = ["--set", "mesh.size=4"]
+    assert main(["run", DEMO, *small, "--set", "solver.max_steps=60", "--out", str(part)]) == 3
+    assert main(["run", DEMO, *small, "--resume", str(part), "--out", str(part)]) == 0
+    whole = tmp_path / "whole"
+    assert main(["run", DEMO, *small, "--out", str(whole)]) == 0
+    r, w = _summary(part), _summary(whole)
+    assert r["converged"] and r["resumed_from"] == {
+        "directory": str(part), "pressure_Pa": 16000.0, "converged": False,
+        "newton_iterations": 60}
+    assert "coarse_start" not in r
+    np.testing.assert_allclose(_u(part), _u(whole), rtol=0, atol=1e-5)
+    assert r["newton_iterations"] < w["newton_iterations"] - 20, \
+        (r["newton_iterations"], w["newton_iterations"])
+
+
+def test_load_steps_resume_from_the_pressure_reached(tmp_path):
+    """A flat CP08 disk stopped after 4 load steps resumes from the pressure it reached, and
+    one converged at 16 kPa goes on to 20 kPa from there: each reaches the centre deflection
+    of a run from the flat state (1e-6 relative), in fewer load steps."""
+    scene = tmp_path / "disk.toml"
+    scene.write_text('title = "disk"\n[mesh]\ngenerator = "disk"\nradius = 10.0\nsize = 1.25\n'
+                     '[[region]]\nlaw = "mny"\nparams = "CP08"\n[output]\nprobes = '
+                     '[{ name = "c", point = [0.0, 0.0, 0.0] }]\n')
+
+    def run(name: str, *args: str) -> dict:
+        main(["run", str(scene), "--out", str(tmp_path / name), *args])
+        return _summary(tmp_path / name)
+
+    short = run("short", "--set", "solver.max_steps=4")
+    assert not short["converged"] and 0 < short["pressure_Pa"] < 16000.0
+    resumed = run("resumed", "--resume", str(tmp_path / "short"))
+    whole = run("whole")
+    assert resumed["converged"] and whole["converged"]
+    assert resumed["resumed_from"]["pressure_Pa"] == short["pressure_Pa"]
+    assert resumed["probes"]["c"]["displacement_mm"][2] == pytest.approx(
+        whole["probes"]["c"]["displacement_mm"][2], rel=1e-6)
+    assert resumed["load_steps"] < whole["load_steps"]
+
+    higher = ["--set", "load.pressure=20000.0"]
+    on = run("on", *higher, "--resume", str(tmp_path / "whole"))
+    direct = run("direct", *higher)
+    assert on["converged"] and direct["converged"]
+    assert on["probes"]["c"]["displacement_mm"][2] == pytest.approx(
+        direct["probes"]["c"]["displacement_mm"][2], rel=1e-6)
+    assert on["load_steps"] < direct["load_steps"]
+
+
+@pytest.mark.parametrize("case, words", [
+    ("nothing", "no run's summary.json there"),
+    ("other mesh", "a run of 491 cells, this scene has"),
+    ("no fields", "no fields.h5 there"),
+    ("accuracy", "asks for mesh.accuracy"),
+])
+def test_a_resume_from_what_cannot_be_resumed_is_one_line(tmp_path, capsys, case, words):
+    scene = tmp_path / "disk.toml"
+    scene.write_text('title = "disk"\n[mesh]\ngenerator = "disk"\nradius = 10.0\nsize = 1.25\n'
+                     '[[region]]\nlaw = "svk"\nparams = "SVK"\n')
+    earlier = tmp_path / "earlier"
+    args = []
+    if case in ("other mesh", "no fields"):
+        assert main(["run", str(scene), "--out", str(earlier)]) == 0
+    if case == "other mesh":
+        args = ["--set", "mesh.size=2.5"]
+    elif case == "no fields":
+        (earlier / "fields.h5").unlink()
+    elif case == "accuracy":  # (refused before anything is built)
+        scene, args = DEMO, ["--set", "mesh.accuracy=0.1", "--set", "mesh.refine=1"]
+    capsys.readouterr()
+    assert main(["run", str(scene), *args, "--resume", str(earlier), "--out",
+                 str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"mvfem: error: ") and words in err[0], err
+    assert "Traceback" not in "".join(err)
