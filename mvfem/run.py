@@ -1178,16 +1178,25 @@ def _interrupted(result: Result, written: bool, stop) -> Interrupted:
     if s["converged"]:
         return Interrupted(f"{stop.name} came as the run converged; its results are {where}",
                            result, written, stop.exit_code)
+    again = _resume_hint(result) if written else ""
     return Interrupted(f"{s['stop_reason']}; the last accepted state (at "
                        f"{s['pressure_Pa'] / 1e3:.4g} kPa, not converged: residual "
-                       f"{s['equilibrium_residual']:.3g} of the load) is {where}", result,
-                       written, stop.exit_code)
+                       f"{s['equilibrium_residual']:.3g} of the load) is {where}{again}",
+                       result, written, stop.exit_code)
+
+
+def _resume_hint(result: Result) -> str:
+    """How to go on from the state a run wrote (where it wrote one to start from)."""
+    if result.out is None or not (Path(result.out) / "fields.h5").is_file():
+        return ""
+    return f" (--resume {result.out} goes on from it)"
 
 
 def check_converged(result: Result) -> None:
     """Raise :class:`SolverError` (exit code 3) for a run that stopped short."""
     if not result.converged:
         s = result.summary
+        again = f" in {result.out}{_resume_hint(result)}" if result.out is not None else ""
         raise SolverError(f"stopped at {s['pressure_Pa'] / 1e3:.4g} kPa of "
                           f"{s['target_pressure_Pa'] / 1e3:.4g} kPa: {s['stop_reason']}; "
-                          f"last converged state written")
+                          f"last converged state written{again}")

@@ -219,7 +219,7 @@ def test_ctrl_c_on_a_valve_writes_its_last_accepted_state(tmp_path, sig, code, c
     text = "\n".join(lines[-30:])
     assert rc == code, text
     assert lines[-1].startswith(f"mvfem: stopped by {cause} after "), text
-    assert f"is written in {out}" in lines[-1], text
+    assert lines[-1].endswith(f"is written in {out} (--resume {out} goes on from it)"), text
     assert not any("Traceback" in ln for ln in lines), text
     steps = [_PT.match(ln) for ln in lines if _PT.match(ln)]
     accepted = [m for m in steps if m.group(3) == "ok"]

@@ -26,7 +26,8 @@ def _summary(d: Path) -> dict:
 
 
 @pytest.mark.mpi
-def test_a_valve_stopped_short_resumes_to_the_closure_of_an_uninterrupted_run(shared_tmp):
+def test_a_valve_stopped_short_resumes_to_the_closure_of_an_uninterrupted_run(shared_tmp, comm,
+                                                                              capsys):
     """The 4 mm demo stopped after 60 pseudo-time steps (``solver.max_steps``, exit code 3),
     then resumed from the state it wrote, into the same directory: it converges to the
     closure of the demo run without a stop (every node to 1e-5 mm; both are converged to
@@ -36,6 +37,9 @@ def test_a_valve_stopped_short_resumes_to_the_closure_of_an_uninterrupted_run(sh
     part = tmp_path / "part"
     small = ["--set", "mesh.size=4"]
     assert main(["run", DEMO, *small, "--set", "solver.max_steps=60", "--out", str(part)]) == 3
+    if comm.rank == 0:  # (the line is rank 0's)
+        assert capsys.readouterr().err.strip().endswith(
+            f"last converged state written in {part} (--resume {part} goes on from it)")
     assert main(["run", DEMO, *small, "--resume", str(part), "--out", str(part)]) == 0
     whole = tmp_path / "whole"
     assert main(["run", DEMO, *small, "--out", str(whole)]) == 0
