@@ -1013,9 +1013,17 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                 k0 *= START_WEIGHT
             nested = bool(sequenced and seq.get("nested"))
             window = NESTED_CONVEX_WINDOW if nested else 0
+            k_first = NESTED_FIRST_WEIGHT * k0 if nested else None
+            going_on = (resumed or {}).get("pseudo_time")
+            if going_on:
+                # the run goes on as it was: its weight, Newton's regime's threshold and
+                # tangents (from a state near the closure a start at the open state's weight
+                # crawled: the demo refined twice 147 finest steps after 10, against 44)
+                k0 = going_on["threshold"] * model.stabiliser_scale
+                k_first = going_on["weight"] * model.stabiliser_scale
+                sequenced, window = bool(going_on["symmetric"]), int(going_on["convex_window"])
             ptc = PseudoTransient(problem, k0=k0, atol=tight_atol, symmetric=sequenced,
-                                  convex_window=window,
-                                  k_first=NESTED_FIRST_WEIGHT * k0 if nested else None,
+                                  convex_window=window, k_first=k_first,
                                   symmetric_above=sym_above, max_steps=max_steps, on_step=on_step,
                                   max_move=MAX_MOVE * model.length_scale, ramp=hook,
                                   ramp_steps=max_steps if hook is not None else 0)
@@ -1122,6 +1130,11 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     if ptc is not None:
         summary["convexified_tangents"] = convexified
         summary["symmetric_tangents"] = symmetric
+        if ptc.weight is not None:  # where a resumed run starts, and how it goes on (_resume)
+            scale = model.stabiliser_scale
+            summary["pseudo_time"] = {"weight": ptc.weight / scale, "threshold": ptc.k0 / scale,
+                                      "symmetric": ptc.symmetric,
+                                      "convex_window": ptc.convex_window}
         if ptc.at_floor:  # converged where roundoff alone gives the residual (above tolerance)
             summary["residual_floor"] = floor
             if comm.rank == 0:
@@ -1167,7 +1180,8 @@ def _resume(scene: Scene, model: Model, directory) -> dict:
     written = read_state(model, directory)
     return {"directory": str(directory), "pressure_Pa": float(written.get("pressure_Pa") or 0.0),
             "converged": bool(written.get("converged")),
-            "newton_iterations": written.get("newton_iterations")}
+            "newton_iterations": written.get("newton_iterations"),
+            "pseudo_time": written.get("pseudo_time")}
 
 
 def _interrupted(result: Result, written: bool, stop) -> Interrupted:

@@ -922,6 +922,9 @@ class PseudoTransient:
     at_floor: bool = False
     #: whether Ctrl-C or SIGTERM stopped the run (:func:`stop_on_interrupt`)
     interrupted: bool = False
+    #: the pseudo-time weight the next step would have taken: where a resumed run starts
+    #: (``k_first``; summary.json ``pseudo_time_weight``, relative to the stabiliser scale)
+    weight: float | None = None
 
     def run(self) -> SolveInfo:
         """Advance from the problem's current ``u`` until ``||F|| <= atol``; ``u`` holds the
@@ -1159,6 +1162,7 @@ class PseudoTransient:
                 share = getattr(self.ramp, "share", None)
                 self.stop_reason += ("; the prescribed motion is not complete" if share is None
                                      else f"; the prescribed motion reached {100 * share:.1f} %")
+            self.weight = k
             converged = r <= max(self.atol, self.floor) and ramped
             self.at_floor = converged and r > self.atol
             if self.at_floor:

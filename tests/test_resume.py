@@ -44,9 +44,12 @@ def test_a_valve_stopped_short_resumes_to_the_closure_of_an_uninterrupted_run(sh
     whole = tmp_path / "whole"
     assert main(["run", DEMO, *small, "--out", str(whole)]) == 0
     r, w = _summary(part), _summary(whole)
-    assert r["converged"] and r["resumed_from"] == {
+    went_on = r["resumed_from"]
+    assert r["converged"] and {k: went_on[k] for k in (
+        "directory", "pressure_Pa", "converged", "newton_iterations")} == {
         "directory": str(part), "pressure_Pa": 16000.0, "converged": False,
         "newton_iterations": 60}
+    assert went_on["pseudo_time"]["threshold"] == 1.0  # (the open state's start)
     assert "coarse_start" not in r
     np.testing.assert_allclose(_u(part), _u(whole), rtol=0, atol=1e-5)
     assert r["newton_iterations"] < w["newton_iterations"] - 20, \
@@ -111,3 +114,23 @@ def test_a_resume_from_what_cannot_be_resumed_is_one_line(tmp_path, capsys, case
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"mvfem: error: ") and words in err[0], err
     assert "Traceback" not in "".join(err)
+
+
+@pytest.mark.slow
+def test_a_nested_level_stopped_short_goes_on_along_its_own_path(tmp_path):
+    """The demo refined twice, its finest level stopped after 10 pseudo-time steps, resumed:
+    the finest level goes on with the weight, Newton's threshold and tangents it had
+    (summary.json ``pseudo_time``), so the two parts take about the steps of the run without
+    a stop (session 56: 10 + 34 against 44) and reach its closure (1e-6 mm). Resumed from
+    the open state's weight instead, it took 147 more steps."""
+    part, whole = tmp_path / "part", tmp_path / "whole"
+    refined = ["--set", "mesh.refine=2"]
+    assert main(["run", DEMO, *refined, "--set", "solver.max_steps=10", "--out",
+                 str(part)]) == 3
+    assert _summary(part)["pseudo_time"]["threshold"] > 1.0  # (a nested level's start)
+    assert main(["run", DEMO, *refined, "--resume", str(part), "--out", str(part)]) == 0
+    assert main(["run", DEMO, *refined, "--out", str(whole)]) == 0
+    r, w = _summary(part), _summary(whole)
+    np.testing.assert_allclose(_u(part), _u(whole), rtol=0, atol=1e-6)
+    assert 10 + r["newton_iterations"] <= w["newton_iterations"] + 5, \
+        (r["newton_iterations"], w["newton_iterations"])
