@@ -343,9 +343,15 @@ def read_state(model, directory, option: str = "--resume") -> dict:
         raise InputError(error)
     import h5py
 
-    with h5py.File(d / "fields.h5", "r") as f:  # (every rank reads it: a few MB at most)
-        xw = np.asarray(f["Mesh/mesh/geometry"])
-        uw = np.asarray(f["Function/displacement/0"])
+    try:  # (every rank reads it: a few MB at most)
+        with h5py.File(d / "fields.h5", "r") as f:
+            xw = np.asarray(f["Mesh/mesh/geometry"], dtype=float)
+            uw = np.asarray(f["Function/displacement/0"], dtype=float)
+        if xw.ndim != 2 or xw.shape[1] != 3 or uw.shape != xw.shape:
+            raise ValueError(f"geometry {xw.shape}, displacement {uw.shape}")
+    except (OSError, KeyError, ValueError) as e:
+        raise InputError(f"{where}: its fields.h5 cannot be read as a run's state "
+                         f"({str(e) or type(e).__name__})") from None
     x = model.mesh.geometry.x
     extent = float(np.abs(xw).max(initial=1.0))
     dist, row = cKDTree(xw).query(x)

@@ -93,6 +93,7 @@ def test_load_steps_resume_from_the_pressure_reached(tmp_path):
     ("other mesh", "a run of 491 cells, this scene has"),
     ("no fields", "no fields.h5 there"),
     ("accuracy", "asks for mesh.accuracy"),
+    ("broken fields", "its fields.h5 cannot be read as a run's state"),
 ])
 def test_a_resume_from_what_cannot_be_resumed_is_one_line(tmp_path, capsys, case, words):
     scene = tmp_path / "disk.toml"
@@ -100,12 +101,15 @@ def test_a_resume_from_what_cannot_be_resumed_is_one_line(tmp_path, capsys, case
                      '[[region]]\nlaw = "svk"\nparams = "SVK"\n')
     earlier = tmp_path / "earlier"
     args = []
-    if case in ("other mesh", "no fields"):
+    if case in ("other mesh", "no fields", "broken fields"):
         assert main(["run", str(scene), "--out", str(earlier)]) == 0
     if case == "other mesh":
         args = ["--set", "mesh.size=2.5"]
     elif case == "no fields":
         (earlier / "fields.h5").unlink()
+    elif case == "broken fields":  # (as a write cut short leaves it)
+        data = (earlier / "fields.h5").read_bytes()
+        (earlier / "fields.h5").write_bytes(data[: len(data) // 3])
     elif case == "accuracy":  # (refused before anything is built)
         scene, args = DEMO, ["--set", "mesh.accuracy=0.1", "--set", "mesh.refine=1"]
     capsys.readouterr()
