@@ -1,7 +1,7 @@
 """Ctrl-C (or SIGTERM) during a solve: the first stops the run at its next step and writes the
 last accepted state (summary.json ``"interrupted": true``, exit code 130, 143 for SIGTERM); a
 second stops at once; a study makes an interrupted run again (README, "Running a scene":
-"Ctrl-C")."""
+"Ctrl-C and SIGTERM")."""
 
 from __future__ import annotations
 
