@@ -153,8 +153,6 @@ def check_probes_reach(model, probes: list, source) -> None:
     """Bad input (:class:`InputError`, exit code 2), said before anything is solved: a probe
     farther from the surface than its closest cell's diameter, which would read nothing
     (:func:`probe_displacements`). Collective."""
-    from mvfem.errors import InputError
-
     found = probe_displacements(model, probes, warn=False)
     for i, p in enumerate(probes):
         r = found[p["name"]]

@@ -118,9 +118,9 @@ def stop_on_interrupt(comm):
     program that handles a signal itself or ignores it keeps its own. On several ranks the
     steppers ask all of them (:func:`stop_asked` with their communicator, a collective call at
     each step boundary), so every rank stops at the same step, whichever got the signal:
-    mpirun turns Ctrl-C into SIGTERM to every rank and kills them
-    ``odls_base_sigkill_timeout`` seconds later (1 by default in Open MPI 4; Slurm's KillWait,
-    30 s), so the outputs of a larger mesh need ``--mca odls_base_sigkill_timeout 30``. Nested
+    Open MPI 4's mpirun sends every rank SIGTERM ``odls_base_sigkill_timeout`` seconds after
+    a Ctrl-C and SIGKILL as long after that (1 s by default: a larger mesh's outputs need
+    ``--mca odls_base_sigkill_timeout 5``; Slurm's KillWait, 30 s, at a time limit). Nested
     contexts (a coarser level solved inside a finer one's set-up) share the outermost's
     request."""
     if _STOP.active:
@@ -707,8 +707,6 @@ class LoadStepper:
     on_step: Callable[[StepRecord, "LoadStepper"], None] | None = None
     history: list[StepRecord] = field(default_factory=list)
     stop_reason: str = ""
-    #: whether Ctrl-C or SIGTERM stopped the run (:func:`stop_on_interrupt`)
-    interrupted: bool = False
     #: the ranks that step together (a stop asked of any stops them all), or None: this one
     comm: object = None
 
@@ -723,7 +721,6 @@ class LoadStepper:
         previous: tuple[float, np.ndarray] | None = None
         while t < target - 1e-14 and len(self.history) < self.max_steps:
             if stop_asked(self.comm):
-                self.interrupted = True
                 self.stop_reason = (f"stopped by {stop_cause()} after {len(self.history)} "
                                     "load steps")
                 break
@@ -923,7 +920,7 @@ class PseudoTransient:
     #: whether Ctrl-C or SIGTERM stopped the run (:func:`stop_on_interrupt`)
     interrupted: bool = False
     #: the pseudo-time weight the next step would have taken: where a resumed run starts
-    #: (``k_first``; summary.json ``pseudo_time_weight``, relative to the stabiliser scale)
+    #: (``k_first``; summary.json ``pseudo_time.weight``, relative to the stabiliser scale)
     weight: float | None = None
 
     def run(self) -> SolveInfo:
