@@ -8,7 +8,6 @@ import time
 import warnings
 
 import pytest
-from mpi4py import MPI
 
 from mvfem.cli import quiet_jit_logs  # noqa: E402
 from mvfem.relaunch import RETRIES, silent_start_exit, without_mpi_job  # noqa: E402
@@ -16,10 +15,27 @@ from mvfem.relaunch import RETRIES, silent_start_exit, without_mpi_job  # noqa: 
 quiet_jit_logs()
 
 
+def xdist_controller(config) -> bool:
+    """Whether this process is pytest-xdist's controller (``-n N``, N > 0), which runs no
+    test and starts the workers. It must not start MPI: importing ``mpi4py`` makes a process
+    an Open MPI singleton, which puts its PMIx identity (``PMIX_NAMESPACE``, ``PMIX_RANK``,
+    ``PMIX_SERVER_URI*``, ``OMPI_MCA_ess=singleton``, ...) into the environment every process
+    it starts inherits, so each worker's own ``MPI_Init`` connected to the controller's PMIx
+    server as the controller itself (seen in session 57: 24 such variables in a worker).
+    Without MPI in the controller each worker is a singleton of its own."""
+    return bool(getattr(config.option, "numprocesses", None)) and \
+        not hasattr(config, "workerinput")
+
+
 def pytest_configure(config):
     """Under mpirun each rank gets its own temporary root, inside one directory made fresh for
     this run: two ranks cleaning pytest's shared numbered directories at once race (seen as a
-    failed `make test-mpi`), and a fixed path would be shared by two test runs on one machine."""
+    failed `make test-mpi`), and a fixed path would be shared by two test runs on one machine.
+    (Not in pytest-xdist's controller: :func:`xdist_controller`.)"""
+    if xdist_controller(config):
+        return
+    from mpi4py import MPI
+
     comm = MPI.COMM_WORLD
     if comm.size > 1 and not config.option.basetemp:
         import os
@@ -36,20 +52,78 @@ def pytest_unconfigure(config):
     if root is not None:
         import shutil
 
+        from mpi4py import MPI
+
         MPI.COMM_WORLD.Barrier()
         if MPI.COMM_WORLD.rank == 0:
             shutil.rmtree(root, ignore_errors=True)
 
 
+#: how many times a test whose pytest-xdist worker died in it runs again on a new worker, where
+#: it was that worker's first test (:func:`pytest_handlecrashitem`)
+WORKER_RERUNS = RETRIES
+
+_worker_tests: dict[str, set[str]] = {}  # (the controller's) each worker's reported tests
+_worker_reruns: dict[str, int] = {}  # the tests run again, and how often
+
+
+def pytest_runtest_logreport(report):
+    worker = getattr(report, "node", None)  # (a worker's report, in xdist's controller)
+    if worker is not None:
+        _worker_tests.setdefault(worker.gateway.id, set()).add(report.nodeid)
+
+
+def pytest_handlecrashitem(crashitem, report, sched):
+    """A test whose pytest-xdist worker died in it runs again on the new worker that replaces
+    it, at most ``WORKER_RERUNS`` times, where it was that worker's first test: its start-up
+    (PETSc's, MPI's, the JIT's first loads), where the silent start-up exits of the suite's
+    children happen too (README "Studies"; ``run_child`` starts those children again). Once
+    in session 56 a fresh clone's suite failed so: "worker 'gw1' crashed while running
+    tests/test_distance.py::test_run_with_reference_reports_the_deflection", its first test,
+    which passed in three runs more. A worker that had run other tests, or a test that kills
+    its worker every time, fails as before; each rerun is named in pytest's summary."""
+    worker = getattr(report, "node", None)
+    if worker is None or not _worker_tests.get(worker.gateway.id, set()) <= {crashitem}:
+        return None
+    n = _worker_reruns.get(crashitem, 0)
+    if n >= WORKER_RERUNS:
+        return None
+    try:
+        sched.mark_test_pending(crashitem)
+    except NotImplementedError:  # (--dist loadscope, loadfile: a scope is not split)
+        return None
+    _worker_reruns[crashitem] = n + 1
+    report.outcome = "rerun"
+    return None
+
+
+def pytest_report_teststatus(report):
+    if report.outcome == "rerun":
+        return "rerun", "R", "RERUN"
+    return None
+
+
+def pytest_terminal_summary(terminalreporter):
+    if _worker_reruns:
+        terminalreporter.write_sep("=", "run again: their worker died in them, its first test")
+        for nodeid, n in sorted(_worker_reruns.items()):
+            terminalreporter.write_line(f"{nodeid}: run again {n} of at most {WORKER_RERUNS} "
+                                        "times on a new worker")
+
+
 @pytest.fixture(autouse=True)
 def _collect_and_sync():
     yield
+    from mpi4py import MPI
+
     gc.collect(0)
     MPI.COMM_WORLD.Barrier()
 
 
 @pytest.fixture
 def comm():
+    from mpi4py import MPI
+
     return MPI.COMM_WORLD
 
 
