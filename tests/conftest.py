@@ -64,7 +64,26 @@ def pytest_unconfigure(config):
 WORKER_RERUNS = RETRIES
 
 _worker_tests: dict[str, set[str]] = {}  # (the controller's) each worker's reported tests
-_worker_reruns: dict[str, int] = {}  # the tests run again, and how often
+_worker_reruns: dict[str, list[str]] = {}  # the tests run again: how each worker ended
+
+
+def _worker_end(worker) -> str:
+    """How a dead worker's process ended (``exited 1``, ``killed by SIGKILL``), from its
+    ``Popen`` in execnet's gateway (a private attribute: ``unknown`` where it is not there)."""
+    import signal
+
+    try:
+        rc = worker.gateway._io.popen.wait(timeout=5)
+    except Exception:
+        return "unknown"
+    if rc is None:
+        return "unknown"
+    if rc < 0:
+        try:
+            return f"killed by {signal.Signals(-rc).name}"
+        except ValueError:
+            return f"killed by signal {-rc}"
+    return f"exited {rc}"
 
 
 def pytest_runtest_logreport(report):
@@ -85,14 +104,14 @@ def pytest_handlecrashitem(crashitem, report, sched):
     worker = getattr(report, "node", None)
     if worker is None or not _worker_tests.get(worker.gateway.id, set()) <= {crashitem}:
         return None
-    n = _worker_reruns.get(crashitem, 0)
-    if n >= WORKER_RERUNS:
+    ends = _worker_reruns.get(crashitem, [])
+    if len(ends) >= WORKER_RERUNS:
         return None
     try:
         sched.mark_test_pending(crashitem)
     except NotImplementedError:  # (--dist loadscope, loadfile: a scope is not split)
         return None
-    _worker_reruns[crashitem] = n + 1
+    _worker_reruns[crashitem] = [*ends, _worker_end(worker)]
     report.outcome = "rerun"
     return None
 
@@ -106,9 +125,10 @@ def pytest_report_teststatus(report):
 def pytest_terminal_summary(terminalreporter):
     if _worker_reruns:
         terminalreporter.write_sep("=", "run again: their worker died in them, its first test")
-        for nodeid, n in sorted(_worker_reruns.items()):
-            terminalreporter.write_line(f"{nodeid}: run again {n} of at most {WORKER_RERUNS} "
-                                        "times on a new worker")
+        for nodeid, ends in sorted(_worker_reruns.items()):
+            terminalreporter.write_line(f"{nodeid}: run again {len(ends)} of at most "
+                                        f"{WORKER_RERUNS} times on a new worker (the worker "
+                                        f"{', then '.join(ends)})")
 
 
 @pytest.fixture(autouse=True)

@@ -68,7 +68,8 @@ def test_a_test_whose_worker_died_in_its_first_test_runs_again(tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     assert count.read_text() == "2"
     assert "1 passed, 1 rerun" in r.stdout
-    assert "test_crash.py::test_crashes: run again 1 of at most" in r.stdout
+    assert (f"test_crash.py::test_crashes: run again 1 of at most {WORKER_RERUNS} times on a "
+            "new worker (the worker exited 1)") in r.stdout
 
 
 def test_a_test_that_kills_every_worker_fails_after_its_reruns(tmp_path):
@@ -77,6 +78,7 @@ def test_a_test_that_kills_every_worker_fails_after_its_reruns(tmp_path):
     assert r.returncode == 1, r.stdout + r.stderr
     assert count.read_text() == str(WORKER_RERUNS + 1)
     assert f"1 failed, {WORKER_RERUNS} rerun" in r.stdout
+    assert f"(the worker {', then '.join(['exited 1'] * WORKER_RERUNS)})" in r.stdout
 
 
 def test_a_worker_that_had_run_another_test_is_not_replaced_for_a_rerun(tmp_path):
