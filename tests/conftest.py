@@ -99,7 +99,8 @@ def pytest_handlecrashitem(crashitem, report, sched):
     children happen too (README "Studies"; ``run_child`` starts those children again). Once
     in session 56 a fresh clone's suite failed so: "worker 'gw1' crashed while running
     tests/test_distance.py::test_run_with_reference_reports_the_deflection", its first test,
-    which passed in three runs more. A worker that had run other tests, or a test that kills
+    which passed in three runs more; session 57's first ``make test`` lost gw1 in the same
+    test, again its first, and passed with the rerun. A worker that had run other tests, or a test that kills
     its worker every time, fails as before; each rerun is named in pytest's summary."""
     worker = getattr(report, "node", None)
     if worker is None or not _worker_tests.get(worker.gateway.id, set()) <= {crashitem}:
