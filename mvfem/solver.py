@@ -100,7 +100,7 @@ def _on_signal(signum, frame) -> None:
         return
     try:  # (the step under way may take a second)
         os.write(2, f"\nmvfem: {name}: stopping after this step and writing the last accepted "
-                    f"state ({name} again stops at once, writing nothing)\n".encode())
+                    f"state ({name} again stops at once, writing nothing more)\n".encode())
     except OSError:
         pass
 
