@@ -62,6 +62,9 @@ NESTED_CONVEX_WINDOW = 2
 #: the start weight (the transferred state's residual grew to 1e10-1e13), and took the first
 #: at 16 x: from there the paths are the same, two steps a level fewer (README, "Solving")
 NESTED_FIRST_WEIGHT = 16.0
+#: a resumed run whose motion had completed: its state's clamped loop must lie this close to
+#: where the scene's motion puts it (mm); the motion sets it exactly (to roundoff)
+MOTION_MISMATCH_MM = 1e-6
 #: with a prescribed motion (a ring, annulus or papillary targets, ties drawn tight), the Fung
 #: laws' exponent is continued linearly beyond this (``model.exponent_cap``) until the run has
 #: converged; the true law then goes on from that state. A 36 mm ring on the dilated annulus
@@ -990,6 +993,7 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
         log.info(f"{scene.data['title'] or scene.source}: {model.V.dofmap.index_map.size_global * 3} "
                  f"dofs, pressure {model.p_target / 1e3:g} kPa, {method}")
     ptc = hook = cap_raised_at = None
+    capped_stop = False
     # Ctrl-C or SIGTERM stops at the next step; the last accepted state is written
     # (stop_on_interrupt)
     with stop_on_interrupt(comm) as stop:
@@ -999,7 +1003,19 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
             # the symmetric tangent's cheaper factorisation down to that (SYMMETRIC_ABOVE)
             sequenced = seq is not None and seq["used"]
             motion = _motion_ramp(model)
-            if motion is not None and not sequenced:  # (a sequenced level's is complete)
+            if motion is not None and resumed is not None:
+                # the run resumed had completed its motion (_resume): at its end from the
+                # start, the laws' exponent capped as it still was there
+                motion(1.0)
+                off = _motion_mismatch(model)
+                if off > MOTION_MISMATCH_MM:
+                    raise InputError(
+                        f"--resume {resumed['directory']}: the clamped loop of the state there "
+                        f"lies up to {off:.3g} mm from where {scene.source} moves it (another "
+                        "ring or annulus target?)")
+                model.exponent_cap.value = MOTION_CAP if resumed["motion_capped"] \
+                    else MAX_EXPONENT
+            elif motion is not None and not sequenced:  # (a sequenced level's is complete)
                 hook = _AdaptiveRamp(model, motion, lambda: ptc.history)
                 model.exponent_cap.value = MOTION_CAP
             on_step = _PseudoTimeProgress(load_norm, progress)
@@ -1039,6 +1055,9 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                 if seq is not None:
                     seq["cap_raised_at_step"] = newton_its
                 cap_raised_at = newton_its
+                # stopped short of the capped problem's equilibrium: a resumed run goes on
+                # with the cap (summary.json motion.exponent_capped, _resume)
+                capped_stop = not info.converged
                 if hook is not None and comm.rank == 0 and progress and info.converged:
                     log.info(f"  converged with the Fung laws' exponent capped at {cap:g} "
                              f"(step {newton_its}); " + ("no cell is near the cap" if relaxed else
@@ -1143,11 +1162,17 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                          f"positions gives at this stiffness ({floor:.3g})")
     if model.motion:
         summary["motion"] = {**model.motion, "ramp_steps": model.ramp_steps,
-                             "order": s["motion"]}
+                             "order": s["motion"], "exponent_capped": capped_stop}
         if hook is not None:  # the pseudo-time step whose call completed it (None: it did not)
             summary["motion"]["completed_at_step"] = hook.completed_at
             # the step after which the laws' exponent was no longer capped (MOTION_CAP)
             summary["motion"]["cap_raised_at_step"] = cap_raised_at
+        elif resumed is not None:  # complete from the start: in the state resumed
+            summary["motion"]["completed_at_step"] = 0
+            summary["motion"]["resumed_complete"] = True
+            # (0: the law was no longer capped when the run resumed started)
+            summary["motion"]["cap_raised_at_step"] = (cap_raised_at if resumed["motion_capped"]
+                                                       else 0)
         elif seq is not None and seq.get("motion_complete"):
             # complete from the start: ramped on the coarsest level (coarse_start's records)
             summary["motion"]["completed_at_step"] = 0
@@ -1174,14 +1199,42 @@ def _resume(scene: Scene, model: Model, directory) -> dict:
     ``resumed_from`` records of it (collective)."""
     from mvfem.outputs import read_state
 
-    if model.motion:
-        raise InputError(f"--resume {directory}: {scene.source} prescribes a boundary motion, "
-                         "whose ramp starts from the open state: it cannot resume")
+    if model.motion and _method(model) != "pseudo-time":
+        raise InputError(f"--resume {directory}: {scene.source} prescribes a boundary motion "
+                         "ramped with the load steps from the open state: it cannot resume")
     written = read_state(model, directory)
-    return {"directory": str(directory), "pressure_Pa": float(written.get("pressure_Pa") or 0.0),
+    went = {"directory": str(directory), "pressure_Pa": float(written.get("pressure_Pa") or 0.0),
             "converged": bool(written.get("converged")),
             "newton_iterations": written.get("newton_iterations"),
             "pseudo_time": written.get("pseudo_time")}
+    if model.motion:
+        # a motion completed there goes on at its end (_solve); one not completed cannot: its
+        # ramp's state (the share reached, the lifting) is not written
+        done = (written.get("motion") or {})
+        if done.get("completed_at_step") is None:
+            raise InputError(f"--resume {directory}: {scene.source} prescribes a boundary "
+                             "motion that the run there had not completed (or had none): run "
+                             "it again from the open state")
+        # the laws' exponent still capped there (a run stopped before the capped problem's
+        # equilibrium). Not recorded before session 57: then capped where the cap was never
+        # raised, though such a stop recorded the cap raised at its last step (a resume with
+        # the true law converges too: the 4 mm ring stopped at 120 of 227 steps, in 236)
+        went["motion_capped"] = bool(done.get("exponent_capped",
+                                          done.get("cap_raised_at_step") is None))
+    return went
+
+
+def _motion_mismatch(model: Model) -> float:
+    """How far (mm) the clamped loop's nodes of the state lie from where the motion puts them
+    (its Dirichlet values as set): 0 without a moved loop. Collective."""
+    lift = model.lift
+    if lift is None:
+        return 0.0
+    n = model.V.dofmap.index_map.size_local
+    d = lift.dofs[lift.dofs < n]
+    gap = model.u.x.array.reshape(-1, 3)[d] - lift.g.x.array.reshape(-1, 3)[d]
+    return model.comm.allreduce(float(np.linalg.norm(gap, axis=1).max(initial=0.0)),
+                                op=MPI.MAX)
 
 
 def _interrupted(result: Result, written: bool, stop) -> Interrupted:
@@ -1202,6 +1255,9 @@ def _interrupted(result: Result, written: bool, stop) -> Interrupted:
 def _resume_hint(result: Result) -> str:
     """How to go on from the state a run wrote (where it wrote one to start from)."""
     if result.out is None or not (Path(result.out) / "fields.h5").is_file():
+        return ""
+    motion = (result.summary or {}).get("motion")
+    if motion and motion.get("completed_at_step") is None:  # (_resume refuses it)
         return ""
     return f" (--resume {result.out} goes on from it)"
 

@@ -138,3 +138,50 @@ def test_a_nested_level_stopped_short_goes_on_along_its_own_path(tmp_path):
     np.testing.assert_allclose(_u(part), _u(whole), rtol=0, atol=1e-6)
     assert 10 + r["newton_iterations"] <= w["newton_iterations"] + 5, \
         (r["newton_iterations"], w["newton_iterations"])
+
+
+def test_a_ring_repair_resumes_once_its_motion_is_complete(tmp_path, capsys):
+    """The pathological valve (4 mm) with a 36 mm D-shaped ring, a prescribed motion: the ring
+    motion completes at some step, the laws' exponent stays capped until the capped problem
+    converges, then the true law goes on (``motion.completed_at_step``,
+    ``cap_raised_at_step``). Stopped before the motion completes: no ``--resume`` hint, and a
+    resume is refused in one line (its ramp's state is not written). Stopped with the
+    exponent capped, and stopped under the true law: each resumed run converges to the
+    closure of the run without a stop (every node within 1e-6 mm), the first raising the
+    cap in its own steps, the second with the true law from its start. Another ring: refused
+    (the state's annulus is not where it puts it). Until session 57 every motion was
+    refused, and the stop's line offered ``--resume`` all the same."""
+    scene = tmp_path / "ring.toml"
+    text = (ROOT / "scripts" / "scenes" / "valve_pathological.toml").read_text()
+    scene.write_text(text.replace("size = 2.0", "size = 4.0")
+                     + '\n[repair.ring]\nshape = "d-shaped"\nsize = 36.0\n')
+    whole = tmp_path / "whole"
+    assert main(["run", str(scene), "--out", str(whole)]) == 0
+    w = _summary(whole)
+    done, raised, total = (w["motion"]["completed_at_step"], w["motion"]["cap_raised_at_step"],
+                           w["newton_iterations"])
+    assert 10 < done < raised < total - 5 and w["motion"]["exponent_capped"] is False
+
+    def stop_at(n: int) -> Path:
+        out = tmp_path / f"at{n}"
+        capsys.readouterr()
+        assert main(["run", str(scene), "--set", f"solver.max_steps={n}", "--out",
+                     str(out)]) == 3
+        return out
+
+    early = stop_at(done - 5)
+    assert "--resume" not in capsys.readouterr().err
+    assert main(["run", str(scene), "--resume", str(early), "--out", str(tmp_path / "x")]) == 2
+    assert "had not completed" in capsys.readouterr().err
+    for n, capped in ((raised - 5, True), (raised + 2, False)):
+        part = stop_at(n)
+        assert f"(--resume {part} goes on from it)" in capsys.readouterr().err
+        assert _summary(part)["motion"]["exponent_capped"] is capped
+        assert main(["run", str(scene), "--resume", str(part), "--out", str(part)]) == 0
+        r = _summary(part)
+        assert r["converged"] and r["motion"]["completed_at_step"] == 0
+        assert ((r["motion"]["cap_raised_at_step"] or 0) > 0) is capped, r["motion"]
+        np.testing.assert_allclose(_u(part), _u(whole), rtol=0, atol=1e-6)
+    assert main(["run", str(scene), "--set", "repair.ring.size=34", "--resume", str(part),
+                 "--out", str(tmp_path / "y")]) == 2
+    assert "lies up to" in capsys.readouterr().err
