@@ -537,8 +537,6 @@ class _Lifting:
         self.ksp.getPC().setType("lu")
         self.ksp.getPC().setFactorSolverType("mumps")
         self.g, self.u, self.w = g, u, fem.Function(V)
-        #: the clamped loop's dofs (blocks of 3), where ``u`` must equal ``g``
-        self.dofs = dofs
         self.b = fpetsc.create_vector(self.L)
         #: ``limit(u_owned, w_owned, squeeze=None)`` -> the fraction of ``w`` allowed (contact:
         #: the collision check, and with ``squeeze`` the closest pairs kept that share apart)

@@ -62,9 +62,10 @@ NESTED_CONVEX_WINDOW = 2
 #: the start weight (the transferred state's residual grew to 1e10-1e13), and took the first
 #: at 16 x: from there the paths are the same, two steps a level fewer (README, "Solving")
 NESTED_FIRST_WEIGHT = 16.0
-#: a resumed run whose motion had completed: its state's clamped loop must lie this close to
-#: where the scene's motion puts it (mm); the motion sets it exactly (to roundoff)
-MOTION_MISMATCH_MM = 1e-6
+#: a resumed run's state must have its held nodes (clamp, a completed motion's loop) this
+#: close to where the scene holds them (mm); a run of the same scene has them there exactly
+#: (to roundoff)
+HELD_MISMATCH_MM = 1e-6
 #: with a prescribed motion (a ring, annulus or papillary targets, ties drawn tight), the Fung
 #: laws' exponent is continued linearly beyond this (``model.exponent_cap``) until the run has
 #: converged; the true law then goes on from that state. A 36 mm ring on the dilated annulus
@@ -989,6 +990,14 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     tight_atol = s["tolerance"] * load_norm
     method = _method(model)
     max_steps = s["max_steps"] or MAX_STEPS[method]
+    if resumed is not None:
+        if model.motion:  # completed in the run resumed (_resume): at its end from the start
+            _motion_ramp(model)(1.0)
+        off = _held_mismatch(model)
+        if off > HELD_MISMATCH_MM:
+            raise InputError(f"--resume {resumed['directory']}: the state there has nodes up "
+                             f"to {off:.3g} mm from where {scene.source} holds them (its clamp, "
+                             "ring or annulus target differ: a run of another scene?)")
     if comm.rank == 0 and progress:
         log.info(f"{scene.data['title'] or scene.source}: {model.V.dofmap.index_map.size_global * 3} "
                  f"dofs, pressure {model.p_target / 1e3:g} kPa, {method}")
@@ -1004,15 +1013,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
             sequenced = seq is not None and seq["used"]
             motion = _motion_ramp(model)
             if motion is not None and resumed is not None:
-                # the run resumed had completed its motion (_resume): at its end from the
-                # start, the laws' exponent capped as it still was there
-                motion(1.0)
-                off = _motion_mismatch(model)
-                if off > MOTION_MISMATCH_MM:
-                    raise InputError(
-                        f"--resume {resumed['directory']}: the clamped loop of the state there "
-                        f"lies up to {off:.3g} mm from where {scene.source} moves it (another "
-                        "ring or annulus target?)")
+                # the run resumed had completed its motion (_resume; at its end, set above):
+                # the laws' exponent capped as it still was there
                 model.exponent_cap.value = MOTION_CAP if resumed["motion_capped"] \
                     else MAX_EXPONENT
             elif motion is not None and not sequenced:  # (a sequenced level's is complete)
@@ -1224,17 +1226,19 @@ def _resume(scene: Scene, model: Model, directory) -> dict:
     return went
 
 
-def _motion_mismatch(model: Model) -> float:
-    """How far (mm) the clamped loop's nodes of the state lie from where the motion puts them
-    (its Dirichlet values as set): 0 without a moved loop. Collective."""
-    lift = model.lift
-    if lift is None:
-        return 0.0
-    n = model.V.dofmap.index_map.size_local
-    d = lift.dofs[lift.dofs < n]
-    gap = model.u.x.array.reshape(-1, 3)[d] - lift.g.x.array.reshape(-1, 3)[d]
-    return model.comm.allreduce(float(np.linalg.norm(gap, axis=1).max(initial=0.0)),
-                                op=MPI.MAX)
+def _held_mismatch(model: Model) -> float:
+    """The largest difference (mm, any component) between a held dof of the state and the
+    value the scene's Dirichlet conditions hold it at, as now set (a clamp, a ring's or an
+    annulus target's loop, rigid pins). Collective."""
+    from dolfinx.fem import petsc as fpetsc
+    from petsc4py import PETSc
+
+    gap = model.u.vector.duplicate()
+    gap.set(0.0)
+    fpetsc.set_bc(gap, model.bcs, x0=model.u.vector, scale=1.0)  # g - u on the held dofs
+    off = gap.norm(PETSc.NormType.INFINITY)
+    gap.destroy()
+    return float(off)
 
 
 def _interrupted(result: Result, written: bool, stop) -> Interrupted:

@@ -148,9 +148,10 @@ def test_a_ring_repair_resumes_once_its_motion_is_complete(tmp_path, capsys):
     resume is refused in one line (its ramp's state is not written). Stopped with the
     exponent capped, and stopped under the true law: each resumed run converges to the
     closure of the run without a stop (every node within 1e-6 mm), the first raising the
-    cap in its own steps, the second with the true law from its start. Another ring: refused
-    (the state's annulus is not where it puts it). Until session 57 every motion was
-    refused, and the stop's line offered ``--resume`` all the same."""
+    cap in its own steps, the second with the true law from its start. Another ring, or the
+    valve without the ring: refused (the state's annulus is not where the scene holds it;
+    the latter ran 30 refusals to "no admissible step" before). Until session 57 every
+    motion was refused, and the stop's line offered ``--resume`` all the same."""
     scene = tmp_path / "ring.toml"
     text = (ROOT / "scripts" / "scenes" / "valve_pathological.toml").read_text()
     scene.write_text(text.replace("size = 2.0", "size = 4.0")
@@ -184,4 +185,11 @@ def test_a_ring_repair_resumes_once_its_motion_is_complete(tmp_path, capsys):
         np.testing.assert_allclose(_u(part), _u(whole), rtol=0, atol=1e-6)
     assert main(["run", str(scene), "--set", "repair.ring.size=34", "--resume", str(part),
                  "--out", str(tmp_path / "y")]) == 2
-    assert "lies up to" in capsys.readouterr().err
+    assert "the state there has nodes up to 1 mm from where" in capsys.readouterr().err
+    unrepaired = tmp_path / "unrepaired.toml"  # (its annulus clamped where it was: 10.4 mm)
+    unrepaired.write_text(text.replace("size = 2.0", "size = 4.0"))
+    assert main(["run", str(unrepaired), "--resume", str(part), "--out",
+                 str(tmp_path / "z")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("mvfem: error: --resume ") and "has nodes up to" in err[-1], err
+    assert not any("Traceback" in line for line in err)
