@@ -804,8 +804,9 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     short, was stopped by Ctrl-C, or converged at another pressure): the solve starts from the
     state written there (:func:`mvfem.outputs.read_state`), on the scene's own mesh alone (no
     coarser levels), load steps from the pressure that run reached (a pseudo-time run at the
-    full pressure in any case). Not with a prescribed motion (its ramp starts from the open
-    state) nor ``mesh.accuracy``.
+    full pressure in any case). A prescribed motion only where that run had completed it
+    (pseudo-time: the motion then at its end from the start), and its held nodes where this
+    scene holds them; not with ``mesh.accuracy``.
 
     ``initial``: a warm start, the local displacement array (``result.u.x.array``) of an earlier
     solve of the same mesh on the same ranks, e.g. the previous evaluation of a calibration. It

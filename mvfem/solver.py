@@ -119,7 +119,8 @@ def stop_on_interrupt(comm):
     steppers ask all of them (:func:`stop_asked` with their communicator, a collective call at
     each step boundary), so every rank stops at the same step, whichever got the signal:
     Open MPI 4's mpirun sends every rank SIGTERM ``odls_base_sigkill_timeout`` seconds after
-    a Ctrl-C and SIGKILL as long after that (1 s by default: a larger mesh's outputs need
+    a Ctrl-C and SIGKILL as long after that (1 s by default: the state is written first,
+    ``mvfem.outputs._write_state_first``, but the rest of a larger mesh's outputs needs
     ``--mca odls_base_sigkill_timeout 5``; Slurm's KillWait, 30 s, at a time limit). Nested
     contexts (a coarser level solved inside a finer one's set-up) share the outermost's
     request."""
