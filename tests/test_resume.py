@@ -17,8 +17,13 @@ DEMO = str(ROOT / "mvfem" / "data" / "demo.toml")
 
 
 def _u(d: Path) -> np.ndarray:
+    """The displacement written in ``d/fields.h5``, its nodes in the order of their reference
+    coordinates: under mpirun the order written is the partition's, and PT-Scotch's partition of
+    the same mesh differs now and then between runs (a CI run's three runs of one process did)."""
     with h5py.File(d / "fields.h5", "r") as f:
-        return np.asarray(f["Function/displacement/0"])
+        x = np.asarray(f["Mesh/mesh/geometry"])
+        u = np.asarray(f["Function/displacement/0"])
+    return u[np.lexsort(x.T[::-1])]
 
 
 def _summary(d: Path) -> dict:
