@@ -699,42 +699,58 @@ class Contact:
     def _excluded_edge_pairs(self) -> np.ndarray:
         """Sorted keys ``i * n_edges + j``, ``i < j``, of the edge pairs that never interact:
         a shared vertex, or midpoints within ``exclusion`` in the reference surface. Either
-        puts the midpoints within the longest edge or the exclusion of each other."""
+        puts the midpoints within the longest edge or the exclusion of each other; where the
+        exclusion is the longer (the default on meshes finer than twice the thickness), the
+        shared vertices need no test of their own. The demo refined three times: 19.3 million
+        keys in 2.8 s, where a test of every pair's vertices and a ``np.unique`` of the keys
+        took 8.2 s (session 58)."""
         from scipy.spatial import cKDTree
 
         e, mid = self._edges, self._edge_mid_ref
         if len(e) < 2:
             return np.zeros(0, dtype=np.int64)
-        reach = max(self.exclusion, float(self._edge_len_ref.max()))
+        longest = float(self._edge_len_ref.max())
+        reach = max(self.exclusion, longest)
         pairs = cKDTree(mid).query_pairs(reach * (1 + 1e-6), output_type="ndarray")
-        i, j = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
-        a, b = e[i], e[j]
-        ok = ~np.any(a[:, :, None] == b[:, None, :], axis=(1, 2))
-        ok &= np.linalg.norm(mid[i] - mid[j], axis=1) > self.exclusion
-        lo, hi = np.minimum(i, j)[~ok], np.maximum(i, j)[~ok]
-        return np.unique(lo * len(e) + hi)
+        i, j = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)  # (i < j, each once)
+        del pairs
+        gap = mid[i] - mid[j]
+        near = ~(np.sqrt(np.einsum("ij,ij->i", gap, gap)) > self.exclusion)
+        del gap
+        if self.exclusion < longest:
+            a, b = e[i], e[j]
+            near |= ((a[:, 0] == b[:, 0]) | (a[:, 0] == b[:, 1]) | (a[:, 1] == b[:, 0])
+                     | (a[:, 1] == b[:, 1]))
+        keys = i[near] * len(e) + j[near]
+        keys.sort()
+        return keys
 
     def _excluded_pairs(self) -> np.ndarray:
         """Sorted keys ``s * n_cells + t`` of the (node, triangle) pairs that never interact:
-        a vertex of ``t`` within ``exclusion`` of ``s`` in the reference surface."""
+        a vertex of ``t`` within ``exclusion`` of ``s`` in the reference surface. The pairs
+        are the nonzeros of (slave near node) x (node in cell), a sparse product that merges
+        the triangles met through two or three of their vertices (the demo refined three
+        times: 10 million keys in 0.9 s, against 3.7 s expanding every (node, cell of a near
+        node) and ``np.unique``, session 58)."""
+        import scipy.sparse as sp
         from scipy.spatial import cKDTree
 
         X, cells = self.view.X, self.view.cells
         if len(self.slaves) == 0 or len(cells) == 0:
             return np.zeros(0, dtype=np.int64)
-        # each node's cells, grouped by node (a CSR of the incidence)
-        flat = cells.ravel()
-        order = np.argsort(flat, kind="stable")
-        node_cells = (order // 3).astype(np.int64)
-        start = np.r_[0, np.cumsum(np.bincount(flat, minlength=len(X)))]
         near = cKDTree(X[self.slaves]).sparse_distance_matrix(
             cKDTree(X), self.exclusion, output_type="ndarray")
-        i, j = near["i"].astype(np.int64), near["j"].astype(np.int64)
-        # every (slave of i, cell of node j): the cells of node j, one row per pair
-        count = start[j + 1] - start[j]
-        first = np.repeat(start[j] - np.r_[0, np.cumsum(count)[:-1]], count)
-        t = node_cells[first + np.arange(count.sum())]
-        return np.unique(self.slaves[np.repeat(i, count)].astype(np.int64) * len(cells) + t)
+        n = len(X)
+        near_nodes = sp.csr_matrix((np.ones(len(near), dtype=np.int8),
+                                    (self.slaves[near["i"]], near["j"])), shape=(n, n))
+        del near
+        in_cell = sp.csr_matrix((np.ones(cells.size, dtype=np.int8),
+                                 (cells.ravel(), np.repeat(np.arange(len(cells)), 3))),
+                                shape=(n, len(cells)))
+        pairs = (near_nodes @ in_cell).tocsr()  # (entries 1 to 3: no int8 overflow)
+        pairs.sort_indices()
+        rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(pairs.indptr))
+        return rows * len(cells) + pairs.indices
 
     # --- reporting ----------------------------------------------------------------------------
     def penetration(self, x: np.ndarray) -> dict:

@@ -205,6 +205,30 @@ def test_facing_edge_pairs_only_where_the_mesh_is_coarser_than_the_thickness():
                zip(*Contact(view, 0.9, 1e5, exclusion=0.2).edge_pairs(x)[:2]))
 
 
+def test_excluded_pairs_are_those_near_in_the_reference_surface():
+    """The (node, triangle) and (edge, edge) pairs that never interact, against a brute force
+    over every pair of the two sheets: a triangle with a vertex within the exclusion of the
+    node; two edges sharing a vertex or with midpoints within the exclusion. At exclusions
+    below the longest edge (1.41 mm, where two edges sharing a vertex can have their midpoints
+    further apart than it), at one that ties the grid's spacing (midpoints exactly 1 mm apart)
+    and above the longest edge (where the code tests no shared vertex)."""
+    from mvfem.contact import Contact
+
+    view, x = _two_sheets(0.3, shift=0.3)
+    X, cells = view.X, view.cells
+    for exclusion in (0.2, 0.5, 1.0, 1.5, 3.0):
+        c = Contact(view, 0.5, 1e5, exclusion=exclusion)
+        e = c._edges
+        want = [a * len(e) + b for a in range(len(e)) for b in range(a + 1, len(e))
+                if len(set(e[a]) | set(e[b])) < 4 or np.linalg.norm(
+                    X[e[a]].mean(axis=0) - X[e[b]].mean(axis=0)) <= exclusion]
+        np.testing.assert_array_equal(c._excluded_edges, want)
+        want = [s * len(cells) + t for s in range(len(X)) for t in range(len(cells))
+                if min(np.linalg.norm(X[v] - X[s]) for v in cells[t]) <= exclusion]
+        np.testing.assert_array_equal(c._excluded, want)
+        assert 0 < len(c._excluded_edges) < len(e) * (len(e) - 1) // 2
+
+
 def test_contact_pushes_sheets_apart_with_the_penalty_pressure():
     """Sheets 0.3 mm apart, one exactly above the other, contact thickness 0.5 mm: a node's
     closest point on the other sheet is the vertex opposite, shared by all ``val`` triangles
