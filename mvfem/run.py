@@ -1211,13 +1211,19 @@ def _resume(scene: Scene, model: Model, directory) -> dict:
             "newton_iterations": written.get("newton_iterations"),
             "pseudo_time": written.get("pseudo_time")}
     if model.motion:
-        # a motion completed there goes on at its end (_solve); one not completed cannot: its
-        # ramp's state (the share reached, the lifting) is not written
+        # a motion completed there goes on at its end (_solve); one not completed does not:
+        # the path through the motion picks which of the valve's equilibria it closes to, and
+        # a run resumed part way (tried in session 58: the share reached and the ramp's
+        # increment written, the rim set there, the lifting in the state) took another path
+        # to another closure, up to 5.5 mm (mean 0.94 mm) from the uninterrupted run's on the
+        # 4 mm pathological valve with a 36 mm ring, where a run from the open state repeats
+        # its own to the bit (README, "Resuming a run")
         done = (written.get("motion") or {})
         if done.get("completed_at_step") is None:
             raise InputError(f"--resume {directory}: {scene.source} prescribes a boundary "
                              "motion that the run there had not completed (or had none): run "
-                             "it again from the open state")
+                             "it again from the open state (the path through the motion "
+                             "picks the closure; part way, a resume would take another)")
         # the laws' exponent still capped there (a run stopped before the capped problem's
         # equilibrium). Not recorded before session 57: then capped where the cap was never
         # raised, though such a stop recorded the cap raised at its last step (a resume with
