@@ -335,14 +335,40 @@ def _gmsh_initialized(gmsh) -> bool:
 
 
 @contextmanager
+def _sigint_kept():
+    """Put the SIGINT handler back as it was (main thread only): gmsh 4.8's module sets SIGINT
+    to the system default when imported, and ``gmsh.finalize()`` sets it to whatever handler
+    was there at that import, whatever the program has installed since. In a process that
+    imported gmsh under another handler (the test suite's workers: a test's own), each mesh
+    made later put that handler back, and a test's Ctrl-C found it instead of Python's
+    (session 58: three fresh-cache suites in a row failed
+    ``test_a_run_killed_while_its_outputs_are_made_leaves_a_state_to_resume``, its SIGINT
+    ignored)."""
+    import signal
+    import threading
+
+    main = threading.current_thread() is threading.main_thread()
+    before = signal.getsignal(signal.SIGINT) if main else None
+    try:
+        yield
+    finally:
+        if before is not None:  # (None: a handler not installed from Python; left alone)
+            signal.signal(signal.SIGINT, before)
+
+
+@contextmanager
 def _gmsh_model(name: str):
     """A fresh, quiet gmsh model. Initialise gmsh if needed and finalise it afterwards; if the
-    caller had gmsh running, leave it running with its model and options as they were."""
-    import gmsh
+    caller had gmsh running, leave it running with its model and options as they were. The
+    caller's SIGINT handler is kept through gmsh's import and finalisation
+    (:func:`_sigint_kept`)."""
+    with _sigint_kept():
+        import gmsh
 
     started = not _gmsh_initialized(gmsh)
     if started:
-        gmsh.initialize(readConfigFiles=False)
+        with _sigint_kept():
+            gmsh.initialize(readConfigFiles=False)
         previous, saved = None, {}
     else:
         previous = gmsh.model.getCurrent()
@@ -353,7 +379,8 @@ def _gmsh_model(name: str):
         yield gmsh
     finally:
         if started:
-            gmsh.finalize()
+            with _sigint_kept():
+                gmsh.finalize()
         else:
             gmsh.model.remove()
             if previous:

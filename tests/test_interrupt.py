@@ -97,6 +97,25 @@ def test_ctrl_c_is_said_by_rank_0_and_left_to_a_program_that_handles_it(default_
         signal.signal(signal.SIGINT, old)
 
 
+def test_a_mesh_made_with_gmsh_leaves_the_programs_ctrl_c_handler():
+    """gmsh 4.8's ``finalize()`` sets SIGINT to the handler there was when gmsh was imported,
+    whatever the program installed since: a test suite's worker that had imported gmsh under
+    one test's handler put it back with every mesh made later, and a test's Ctrl-C found it
+    (session 58: three fresh-cache suites in a row failed
+    ``test_a_run_killed_while_its_outputs_are_made_leaves_a_state_to_resume``). Here gmsh is
+    imported under one handler, the program installs Python's, and a disk is meshed (gmsh
+    initialised and finalised): Python's handler is still there (in a fresh interpreter)."""
+    code = ("import signal\nfrom mpi4py import MPI\nfrom mvfem import meshes\n"
+            "signal.signal(signal.SIGINT, lambda s, f: None)\nimport gmsh\n"
+            "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+            "m = meshes.disk(MPI.COMM_SELF, radius=1.0, size=0.5)\n"
+            "assert m.mesh.topology.index_map(2).size_global > 4\n"
+            "print(signal.getsignal(signal.SIGINT) is signal.default_int_handler)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       env=_env(), preexec_fn=_sigdfl, timeout=120)
+    assert r.stdout.strip() == "True", r.stdout[-500:] + r.stderr[-2000:]
+
+
 def test_importing_gmsh_leaves_ctrl_c_to_python():
     """gmsh 4.8's module sets SIGINT to its system default when imported (until
     ``gmsh.finalize()``): in the CLI, which imports it first of all, Ctrl-C killed a study
