@@ -340,10 +340,10 @@ def _sigint_kept():
     to the system default when imported, and ``gmsh.finalize()`` sets it to whatever handler
     was there at that import, whatever the program has installed since. In a process that
     imported gmsh under another handler (the test suite's workers: a test's own), each mesh
-    made later put that handler back, and a test's Ctrl-C found it instead of Python's
-    (session 58: three fresh-cache suites in a row failed
+    made later put that handler back, and a later test's Ctrl-C could find it instead of
+    Python's (session 58: the likely cause of three fresh-cache suites in a row failing
     ``test_a_run_killed_while_its_outputs_are_made_leaves_a_state_to_resume``, its SIGINT
-    ignored)."""
+    not heard)."""
     import signal
     import threading
 

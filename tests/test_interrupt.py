@@ -100,8 +100,8 @@ def test_ctrl_c_is_said_by_rank_0_and_left_to_a_program_that_handles_it(default_
 def test_a_mesh_made_with_gmsh_leaves_the_programs_ctrl_c_handler():
     """gmsh 4.8's ``finalize()`` sets SIGINT to the handler there was when gmsh was imported,
     whatever the program installed since: a test suite's worker that had imported gmsh under
-    one test's handler put it back with every mesh made later, and a test's Ctrl-C found it
-    (session 58: three fresh-cache suites in a row failed
+    one test's handler put it back with every mesh made later, where a later test's Ctrl-C
+    could find it (session 58: the likely cause of three fresh-cache suites in a row failing
     ``test_a_run_killed_while_its_outputs_are_made_leaves_a_state_to_resume``). Here gmsh is
     imported under one handler, the program installs Python's, and a disk is meshed (gmsh
     initialised and finalised): Python's handler is still there (in a fresh interpreter)."""
