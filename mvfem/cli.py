@@ -601,7 +601,6 @@ def _import_gmsh_before_mpi() -> None:
     made. The handler before the import is put back: a study's Ctrl-C killed the study
     without its cleanup (its runs died with it, results.csv not rebuilt), and a run of an
     imported mesh (no gmsh session) could not stop at its next step (session 56)."""
-    import signal
     import sys
 
     if "mpi4py.MPI" in sys.modules:
@@ -609,11 +608,10 @@ def _import_gmsh_before_mpi() -> None:
     import importlib.util
 
     if importlib.util.find_spec("gmsh") is not None:  # no gmsh: nothing to race with
-        before = signal.getsignal(signal.SIGINT)
-        import gmsh  # noqa: F401
+        from mvfem.meshes.generators import _sigint_kept
 
-        if before is not None:
-            signal.signal(signal.SIGINT, before)
+        with _sigint_kept():
+            import gmsh  # noqa: F401
 
 
 def main(argv: list[str] | None = None) -> int:
