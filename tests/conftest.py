@@ -31,9 +31,20 @@ def pytest_configure(config):
     """Under mpirun each rank gets its own temporary root, inside one directory made fresh for
     this run: two ranks cleaning pytest's shared numbered directories at once race (seen as a
     failed `make test-mpi`), and a fixed path would be shared by two test runs on one machine.
-    (Not in pytest-xdist's controller: :func:`xdist_controller`.)"""
+    (Not in pytest-xdist's controller: :func:`xdist_controller`.)
+
+    gmsh is imported first, before MPI starts, as the CLI does
+    (:func:`mvfem.cli._import_gmsh_before_mpi`: its import's ``ldconfig`` child, exiting
+    after an Open MPI singleton's ``MPI_Init``, ended the process with code 1 and no word
+    about one time in two in the hard cases). Until session 58 each worker started MPI here
+    and imported gmsh in its first test that made a mesh: the likely cause of the workers
+    that exited 1 without a word in their first test (sessions 56-58; the first
+    ``test_distance.py`` test each time, whose fixture meshes a disk)."""
     if xdist_controller(config):
         return
+    from mvfem.cli import _import_gmsh_before_mpi
+
+    _import_gmsh_before_mpi()
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD
