@@ -17,7 +17,8 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from mvfem.errors import InputError
-from mvfem.forms import LAWS, Membrane, cauchy_stress, is_exponential, membrane, unit_normal
+from mvfem.forms import (LAWS, Membrane, cauchy_stress, is_exponential, membrane, unit_normal,
+                         uses_fibre)
 from mvfem.forms.pressure import dead_potential, dead_pressure, follower_potential, follower_pressure
 from mvfem.scene import Scene
 
@@ -283,46 +284,125 @@ def _centre(msh, given) -> np.ndarray:
     return s / max(c, 1)
 
 
-def _tangent_unit(vec, n0):
-    t = vec - ufl.dot(vec, n0) * n0
-    return t / ufl.sqrt(ufl.dot(t, t))
+#: a direction projected on the surface is undefined where its tangential part is shorter
+#: than this fraction of the vector it is projected from (the vector within this angle of the
+#: surface's normal) or of the roundoff scale of that vector (a difference of positions: the
+#: vector itself roundoff), at a cell's midpoint. The tangential part carries a roundoff of a
+#: few 1e-16 of those lengths, so below 1e-9 the direction would be off by more than 1e-7
+#: rad, and at 0 it is NaN.
+NORMAL_ANGLE = 1e-9
 
 
-def _directions(msh, fibres: dict, phi=None):
+class _Projected:
+    """The tangential part of a vector field on a surface of unit normal ``n0`` (UFL), and
+    its direction; ``scale``: the length the vector's roundoff is relative to (0 for a given
+    nonzero vector)."""
+
+    def __init__(self, vec, n0, scale=0.0):
+        self.vec = vec
+        self.scale = scale
+        self.tangent = vec - ufl.dot(vec, n0) * n0
+        self.unit = self.tangent / ufl.sqrt(ufl.dot(self.tangent, self.tangent))
+
+    def share(self):
+        """The tangential part's length over the vector's and its scale's: the sine of the
+        vector's angle to the normal where the vector is long, 0 where it is zero."""
+        return ufl.sqrt(ufl.dot(self.tangent, self.tangent)) / (
+            ufl.sqrt(ufl.dot(self.vec, self.vec)) + self.scale)
+
+
+def _directions(msh, fibres: dict, phi=None, uses_fibre: bool = True, source: str = "scene"):
     """(fibre, radial, circumferential) unit tangent fields of the reference surface (UFL).
 
     With ``phi`` (a valve's Laplace coordinate, :mod:`mvfem.meshes.fibres`) radial is its
     gradient direction; otherwise radial and circumferential are taken about ``fibres.axis``
-    through ``fibres.centre``.
+    through ``fibres.centre``. A direction projected on the surface that is undefined at a
+    cell (its vector along the normal there, or zero) is an input error
+    (:func:`_check_directions`); the fibre is checked where a law uses it (``uses_fibre``),
+    radial and circumferential always (the reports' strains and stresses are along them).
     """
     x = ufl.SpatialCoordinate(msh)
     n0 = unit_normal(ufl.Jacobian(msh))
+    direction = fibres["direction"]
+    given = None
+    if not isinstance(direction, str):
+        given = _Projected(fem.Constant(msh, np.asarray(direction, dtype=float)), n0)
+    checks = {"fibre": given} if given is not None and uses_fibre else {}
     if phi is not None:
         from mvfem.meshes.fibres import radial_circumferential
 
         radial, circ = radial_circumferential(phi, n0)
-        direction = fibres["direction"]
-        if direction == "circumferential":
-            return circ, radial, circ
-        if direction == "radial":
-            return radial, radial, circ
-        return _tangent_unit(fem.Constant(msh, np.asarray(direction, dtype=float)), n0), \
-            radial, circ
-    axis = np.asarray(fibres["axis"], dtype=float)
-    # Constants, not literals: the generated code is then the same for every mesh (JIT cache)
-    axis = fem.Constant(msh, axis / np.linalg.norm(axis))
-    c = fem.Constant(msh, _centre(msh, fibres["centre"]))
-    d = x - c
-    circ = _tangent_unit(ufl.cross(axis, d), n0)
-    radial = _tangent_unit(d - ufl.dot(d, axis) * axis, n0)
-    direction = fibres["direction"]
-    if direction == "circumferential":
-        fibre = circ
-    elif direction == "radial":
-        fibre = radial
     else:
-        fibre = _tangent_unit(fem.Constant(msh, np.asarray(direction, dtype=float)), n0)
-    return fibre, radial, circ
+        axis = np.asarray(fibres["axis"], dtype=float)
+        # Constants, not literals: the generated code is then the same for every mesh (JIT
+        # cache)
+        axis = fem.Constant(msh, axis / np.linalg.norm(axis))
+        centre = _centre(msh, fibres["centre"])
+        c = fem.Constant(msh, centre)
+        d = x - c
+        # the roundoff of x - centre is relative to |x| + |centre|
+        scale = ufl.sqrt(ufl.dot(x, x)) + ufl.sqrt(ufl.dot(c, c))
+        about = {"radial": _Projected(d - ufl.dot(d, axis) * axis, n0, scale),
+                 "circumferential": _Projected(ufl.cross(axis, d), n0, scale)}
+        checks.update(about)
+        radial, circ = about["radial"].unit, about["circumferential"].unit
+    _check_directions(msh, checks, fibres, source, None if phi is not None else centre)
+    if direction == "circumferential":
+        return circ, radial, circ
+    if direction == "radial":
+        return radial, radial, circ
+    return given.unit, radial, circ
+
+
+def _check_directions(msh, checks: dict, fibres: dict, source: str, centre) -> None:
+    """Input error naming the first direction of ``checks`` ({name: :class:`_Projected`})
+    undefined at some cell: the vector it is projected from zero or within
+    :data:`NORMAL_ANGLE` of the normal at the cell's midpoint (there its unit field is 0/0 or
+    roundoff, and a solve or a report would meet NaN). Collective."""
+    if not checks:
+        return
+    from mvfem.fields import cell_values
+
+    names = list(checks)
+    shares = [checks[k].share() for k in names]
+    expr = shares[0] if len(shares) == 1 else ufl.as_vector(shares)
+    values = cell_values(expr, msh, () if len(shares) == 1 else (len(shares),))
+    values = values.reshape(len(values), len(names))
+    comm = msh.comm
+    n_cells = comm.allreduce(len(values), op=MPI.SUM)
+    bad = values < NORMAL_ANGLE
+    counts = comm.allreduce(bad.sum(axis=0), op=MPI.SUM)
+    for j, name in enumerate(names):
+        if counts[j] == 0:
+            continue
+        mine = np.flatnonzero(bad[:, j])
+        point = None
+        if len(mine):
+            point = dmesh.compute_midpoints(msh, msh.topology.dim, mine[:1].astype(np.int32))[0]
+        point = next(p for p in comm.allgather(point) if p is not None)
+        where = f"at {counts[j]} of {n_cells} cells (the first near {_point(point)})"
+        axis = _numbers(fibres["axis"])
+        if name == "fibre":
+            raise InputError(f"{source}: fibres.direction: {_numbers(fibres['direction'])} lies "
+                             f"along the surface's normal {where}: the fibre, its projection "
+                             "on the surface, is undefined there")
+        if name == "circumferential":
+            raise InputError(f"{source}: fibres.axis: the circumferential direction about "
+                             f"{axis} lies along the surface's normal {where}, so it is "
+                             "undefined there (an axis that lies in the surface: choose one "
+                             "across it)")
+        raise InputError(f"{source}: fibres.centre: the radial direction from the axis "
+                         f"{axis} through {_point(centre)} is "
+                         f"undefined {where}: the cell lies on the axis, or the direction "
+                         "along the surface's normal (move fibres.centre or fibres.axis)")
+
+
+def _numbers(v) -> str:
+    return "[" + ", ".join(f"{float(c):g}" for c in v) + "]"
+
+
+def _point(x) -> str:
+    return "(" + ", ".join(f"{float(c):.4g}" for c in x) + ")"
 
 
 def _region_cells(surface, label: str | None, n_regions: int, source: str):
@@ -355,7 +435,9 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
         phi = _nodal_function(msh, *given, name="radial_coordinate")
     else:
         phi = _laplace_phi(surface, scene.source)
-    fibre, radial, circ = _directions(msh, scene["fibres"], phi)
+    fibre, radial, circ = _directions(msh, scene["fibres"], phi,
+                                      any(uses_fibre(r["law"]) for r in scene["region"]),
+                                      scene.source)
     kin = membrane(u, fibre)
     meta = {"quadrature_degree": q}
     tags = surface.cell_tags

@@ -38,6 +38,83 @@ def test_same_answer_on_one_and_all_processes(comm):
     assert together.summary["cells"] == alone.summary["cells"]
 
 
+def _disk_scene(**fibres):
+    from mvfem.scene import load_scene
+
+    scene = dict(DISK, fibres=fibres) if fibres else DISK
+    return load_scene(scene)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("fibres,law,key,words", [
+    # the disk lies in z = 0: z is its normal at every cell
+    ({"direction": [0.0, 0.0, 1.0]}, "mny", "fibres.direction",
+     ["[0, 0, 1] lies along the surface's normal", "the fibre"]),
+    # axis x (x - c) is along z for every x in the plane of an axis in it
+    ({"direction": "circumferential", "axis": [1.0, 0.0, 0.0]}, "svk", "fibres.axis",
+     ["circumferential direction about [1, 0, 0]"]),
+    # the same with radial fibres: the reports' circumferential direction is still undefined
+    ({"direction": "radial", "axis": [1.0, 0.0, 0.0]}, "mny", "fibres.axis",
+     ["circumferential direction"]),
+])
+def test_a_direction_along_the_surfaces_normal_is_an_input_error(comm, fibres, law, key, words):
+    """A vector projected on the surface that is the surface's normal has no projection: the
+    fibre (or a report's direction) would be 0/0 at every cell and the solve or the report NaN
+    (before: the solver stopped at 0 kPa, DIVERGED_FNORM_NAN, exit 3; or the circumferential
+    fields all NaN). The error names the key and counts every cell, on any number of ranks."""
+    from mvfem.model import build_mesh, build_model
+
+    scene = _disk_scene(**fibres)
+    scene = scene.with_changes({"region": [{"law": law, "params": {"mny": "MNY-mean",
+                                                                    "svk": "SVK"}[law]}]})
+    n_cells = comm.allreduce(build_mesh(scene, comm).mesh.topology.index_map(2).size_local,
+                             op=MPI.SUM)
+    with pytest.raises(InputError) as e:
+        build_model(scene, comm)
+    text = str(e.value)
+    assert text.startswith(f"{scene.source}: {key}: "), text
+    assert f"at {n_cells} of {n_cells} cells (the first near (" in text
+    for w in words:
+        assert w in text
+
+
+@pytest.mark.mpi
+def test_a_radial_direction_undefined_at_one_cell_is_an_input_error(comm):
+    """The radial direction about the axis through a cell's midpoint is zero there (0/0): an
+    input error that counts that one cell and names ``fibres.centre``; a centre off it by a
+    tenth of a millimetre is accepted (a tangential part of 0.1 mm against NORMAL_ANGLE)."""
+    from dolfinx import mesh as dmesh
+
+    from mvfem.model import build_mesh, build_model
+
+    scene = _disk_scene()
+    msh = build_mesh(scene, comm).mesh
+    n_cells = comm.allreduce(msh.topology.index_map(2).size_local, op=MPI.SUM)
+    mid = dmesh.compute_midpoints(msh, 2, np.array([0], dtype=np.int32))[0]
+    mid = comm.bcast(mid, root=0)
+    with pytest.raises(InputError) as e:
+        build_model(scene.with_changes({"fibres.centre": list(mid)}), comm)
+    text = str(e.value)
+    assert text.startswith(f"{scene.source}: fibres.centre: the radial direction"), text
+    assert f"at 1 of {n_cells} cells" in text
+    build_model(scene.with_changes({"fibres.centre": list(mid + [0.1, 0.0, 0.0])}), comm)
+
+
+def test_a_direction_near_the_normal_is_its_projection(comm):
+    """A vector 1e-3 rad off the disk's normal, toward x, projects on x at every cell (the
+    closed form of the projection on the plane z = 0); an SVK membrane, which has no fibre,
+    accepts the normal itself."""
+    from mvfem.fields import cell_values
+    from mvfem.model import build_model
+
+    m = build_model(_disk_scene(direction=[1e-3, 0.0, 1.0]), comm)
+    fibre = cell_values(m.fibre, m.mesh, (3,))
+    assert np.abs(fibre - [1.0, 0.0, 0.0]).max() < 1e-12
+    scene = _disk_scene(direction=[0.0, 0.0, 1.0]).with_changes(
+        {"region": [{"law": "svk", "params": "SVK"}]})
+    assert build_model(scene, comm).regions[0].law == "svk"
+
+
 def test_outputs_and_equilibrium(tmp_path):
     r = solve(DISK, out=tmp_path / "run", progress=False)
     s = json.loads((tmp_path / "run" / "summary.json").read_text())
