@@ -337,7 +337,12 @@ def _cmd_mesh(args) -> int:
                 "or .xdmf")
     if scene["mesh"]["generator"] == "valve" and not keeps_lines:  # (before meshing it)
         raise InputError(no_lines)
-    surface = build_mesh(scene, MPI.COMM_SELF)
+    try:
+        surface = build_mesh(scene, MPI.COMM_SELF, meshing=True)
+    except InputError as e:
+        if from_scene:
+            raise
+        raise InputError(str(e).replace("<dict>: mesh.", "--")) from None
     valve = isinstance(surface, ValveMesh)  # generated, or a file with an annulus
     if valve and not keeps_lines:
         raise InputError(no_lines)

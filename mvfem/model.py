@@ -140,13 +140,91 @@ def default_size(m: dict) -> float:
     return 0.0
 
 
-def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
-    """The scene's surface mesh (a :class:`mvfem.meshes.SurfaceMesh`)."""
+#: memory a valve closure takes per cell (bytes): the demo at 1 and 0.5 mm (4385 and 16,957
+#: cells) peaked at 311 and 810 MB in three steps (`/usr/bin/time`, session 59), 40 kB a cell
+#: more; disks take less (no contact, chordae or hinges), so for them this is an upper bound
+BYTES_PER_CELL = 40e3
+#: memory making a mesh alone takes per cell (bytes; ``mvfem mesh``): a disk of radius 10 mm
+#: at 0.5 and 0.1 mm (2944 and 72,835 cells) peaked at 151 and 216 MB, a valve at 1 and 0.25
+#: mm (4461 and 68,559 cells) at 211 and 241 MB (session 59)
+MESH_BYTES_PER_CELL = 1e3
+#: cells a generated valve of the built-in dimensions has at mesh.size = 1 mm (the demo's
+#: grading, free edge at half the size): 4385; at 2 and 0.5 mm it has 1144 and 16,957
+VALVE_CELLS_AT_1MM = 4385.0
+#: cells per (area / size^2) of gmsh's unstructured triangles (a disk of radius 10 mm at
+#: size 2 mm: 206 cells, 2.62 x pi 100 / 4)
+CELLS_PER_AREA = 2.6
+
+
+def expected_cells(m: dict, size: float) -> float | None:
+    """About how many cells a generated mesh of the scene's ``[mesh]`` will have, before it
+    is made (None for a file: its count is read)."""
+    gen = m["generator"]
+    if gen == "octasphere":
+        return 8.0 * 4.0 ** m["refinements"]
+    area = {"disk": lambda: np.pi * m["radius"] ** 2, "square": lambda: m["side"] ** 2,
+            "sphere": lambda: 4 * np.pi * m["radius"] ** 2,
+            "tube": lambda: 2 * np.pi * m["radius"] * m["length"]}
+    if gen in area:
+        return CELLS_PER_AREA * area[gen]() / size**2
+    if gen == "valve":
+        return VALVE_CELLS_AT_1MM / size**2 * 4.0 ** m["refine"]
+    return None
+
+
+def _host_memory(comm) -> float:
+    """Physical memory of the hosts the ranks of ``comm`` run on (bytes; each host once)."""
+    import os
+
+    try:
+        mine = float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        mine = float("inf")
+    hosts = dict(comm.allgather((MPI.Get_processor_name(), mine)))
+    return float(sum(hosts.values()))
+
+
+def check_cells(cells: float, what: str, source: str, comm, meshing: bool = False) -> None:
+    """Input error when a mesh of about ``cells`` cells would need more memory than the hosts
+    have (at :data:`BYTES_PER_CELL`, or :data:`MESH_BYTES_PER_CELL` when the mesh is only
+    made): such a run would only end when the memory ran out, after minutes or hours of
+    meshing. ``what`` names the key and value that make the mesh."""
+    per_cell, use = ((MESH_BYTES_PER_CELL, "making a mesh") if meshing else
+                     (BYTES_PER_CELL, "a valve closure"))
+    need = cells * per_cell
+    have = _host_memory(comm)
+    if need <= have:
+        return
+    raise InputError(f"{source}: {what} would make about {_about(cells)} cells, which at the "
+                     f"{per_cell / 1e3:.0f} kB a cell of {use} need about "
+                     f"{_about(need / 2**30)} GiB, more than the {_about(have / 2**30)} GiB of "
+                     f"memory here (about {_about(have / per_cell)} cells fit)")
+
+
+def _about(n: float) -> str:
+    """``n`` to two significant digits, in words from a million up."""
+    if n >= 1e6:
+        return f"{float(f'{n / 1e6:.2g}'):g} million"
+    if n >= 100:
+        return f"{float(f'{n:.2g}'):,.0f}"
+    return f"{n:.2g}"
+
+
+def build_mesh(scene: Scene, comm=MPI.COMM_WORLD, meshing: bool = False):
+    """The scene's surface mesh (a :class:`mvfem.meshes.SurfaceMesh`); one the memory here
+    would not hold (:func:`check_cells`; ``meshing``: the mesh alone is made) is an input
+    error before it is made."""
     from mvfem import meshes
 
     m = scene["mesh"]
     gen = m["generator"]
     size = m["size"] or default_size(m)
+    cells = expected_cells(m, size)
+    if cells is not None:
+        what = (f"mesh.refinements = {m['refinements']}" if gen == "octasphere" else
+                f"mesh.size = {size:g} mm" + (f" with mesh.refine = {m['refine']}"
+                                              if gen == "valve" and m["refine"] else ""))
+        check_cells(cells, what, scene.source, comm, meshing)
     if gen == "disk":
         return meshes.disk(comm, radius=m["radius"], size=size)
     if gen == "square":
@@ -169,6 +247,10 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD):
                                                valve_from_surface)
 
             smooth = bool(m["refine"]) and m["refine_surface"] == "smooth"
+            if m["refine"]:
+                check_cells(len(raw.triangles) * 4.0 ** m["refine"],
+                            f"mesh.refine = {m['refine']} of {m['file']}", scene.source, comm,
+                            meshing)
             if m["refine"]:
                 try:  # the file's own problems in its own nodes first
                     check_surface(comm, raw, m["labels"], source=m["file"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 
@@ -1501,6 +1502,102 @@ def test_refine_refused(changes, what):
     scene = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
     with pytest.raises(InputError, match=r"mesh\.refine: .*" + what):
         scene.with_changes(changes)
+
+
+@pytest.mark.parametrize("mesh, slack", [
+    ({"generator": "disk", "radius": 10.0, "size": 2.0}, 0.25),
+    ({"generator": "disk", "radius": 10.0, "size": 0.7}, 0.25),
+    ({"generator": "square", "side": 10.0, "size": 0.8}, 0.25),
+    ({"generator": "tube", "radius": 5.0, "length": 10.0, "size": 1.0}, 0.25),
+    ({"generator": "octasphere", "radius": 10.0, "refinements": 3}, 0.0),
+    ({"generator": "valve", "size": 3.0}, 0.25),
+    ({"generator": "valve", "size": 2.0, "refine": 1}, 0.25),
+])
+def test_expected_cells_are_the_meshes_cells(mesh, slack):
+    """The count a mesh is refused by (``model.expected_cells``, before it is made) against
+    the cells of the mesh made: gmsh's shapes within a quarter, the octasphere's exact."""
+    from mvfem.model import build_mesh, expected_cells
+    from mvfem.scene import load_scene
+
+    scene = load_scene({"mesh": mesh, "region": [{"law": "svk", "params": "SVK"}]})
+    made = build_mesh(scene, MPI.COMM_SELF).mesh.topology.index_map(2).size_local
+    assert expected_cells(scene["mesh"], mesh.get("size")) == pytest.approx(made, rel=slack)
+
+
+def _refusing(monkeypatch, memory: float):
+    """Hosts of ``memory`` bytes, and a valve generator that must not be reached."""
+    import sys
+
+    import mvfem.meshes.valve  # noqa: F401 (the package's name `valve` is the function)
+    import mvfem.model as model_mod
+
+    valve_mod = sys.modules["mvfem.meshes.valve"]
+
+    monkeypatch.setattr(model_mod, "_host_memory", lambda comm: memory)
+
+    def never(*a, **kw):
+        raise AssertionError("meshed a mesh the memory would not hold")
+    return model_mod, lambda: monkeypatch.setattr(valve_mod, "valve", never)
+
+
+def test_a_mesh_the_memory_would_not_hold_is_refused_before_it_is_made(tmp_path, monkeypatch,
+                                                                       capsys):
+    """With hosts of 100 MB, the demo at 2 mm (about 1100 cells, 44 MB at 40 kB a cell) is
+    made and at 1 mm (about 4400 cells, 175 MB) refused before gmsh runs; ``mvfem mesh``
+    (1 kB a cell) makes it. With this machine's memory a valve at 1 micrometre (4.4e9 cells)
+    is one line and exit code 2 from ``mvfem run`` and ``mvfem mesh``, nothing written."""
+    from mvfem.errors import InputError
+    from mvfem.model import build_mesh
+    from mvfem.scene import load_scene
+
+    demo = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
+    model_mod, stop_meshing = _refusing(monkeypatch, 100e6)
+    assert build_mesh(demo, MPI.COMM_SELF).mesh.topology.index_map(2).size_local == 1144
+    stop_meshing()
+    with pytest.raises(InputError) as e:
+        build_mesh(demo.with_changes({"mesh.size": 1.0}), MPI.COMM_SELF)
+    assert str(e.value).startswith(f"{demo.source}: mesh.size = 1 mm would make about 4,400 "
+                                   "cells"), str(e.value)
+    assert "more than the 0.093 GiB of memory here (about 2,500 cells fit)" in str(e.value)
+    with pytest.raises(AssertionError, match="meshed a mesh"):
+        build_mesh(demo.with_changes({"mesh.size": 1.0}), MPI.COMM_SELF, meshing=True)
+    monkeypatch.undo()
+    for args, key, out in (
+            (["run", str(demo.source), "--set", "mesh.size=0.001"], "mesh.size", tmp_path / "r"),
+            (["mesh", "valve", "--size", "0.001"], "--size", tmp_path / "m.vtu")):
+        assert main(args + ["--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{key} = 0.001 mm would make about 4400 million cells" in err[0]
+        # (a run claims its directory, marked, before it builds the model)
+        assert not out.exists() or [p.name for p in out.iterdir()] == [".mvfem-output"]
+
+
+def test_a_valve_file_refined_beyond_the_memory_is_refused(tmp_path, monkeypatch):
+    """A valve file's refinements are counted from its triangles (each 4 a refinement)."""
+    from mvfem.errors import InputError
+    from mvfem.meshes import read_surface
+    from mvfem.model import build_mesh
+    from mvfem.scene import load_scene
+
+    scene = load_scene(Path(__file__).parents[1] / "scripts" / "scenes" / "valve_imported.toml")
+    n = len(read_surface(scene["mesh"]["file"]).triangles)
+    _refusing(monkeypatch, 40e3 * n * 16 * 0.99)  # two refinements just do not fit
+    with pytest.raises(InputError) as e:
+        build_mesh(scene.with_changes({"mesh.refine": 2}), MPI.COMM_SELF)
+    counted = re.search(r": mesh\.refine = 2 of \S+ would make about ([0-9,]+) cells",
+                        str(e.value))
+    assert counted and float(counted[1].replace(",", "")) == pytest.approx(16 * n, rel=0.05)
+
+
+@pytest.mark.mpi
+def test_the_memory_of_one_host_is_counted_once(comm):
+    """Ranks on one host share its memory: ``_host_memory`` is this host's physical memory on
+    any number of ranks (here all on one machine)."""
+    import os
+
+    from mvfem.model import _host_memory
+
+    assert _host_memory(comm) == os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
 def test_coarse_start_levels_chain(tmp_path, monkeypatch):
