@@ -378,14 +378,20 @@ def _cli(*args, cwd=None):
      "is not on the posterior free edge"),
     ("repair.clip[0].points", 'repair.clip=[{points=[[0.0, 0.0, 30.0], [0.0, 0.0, 30.0]]}]',
      "is not on the anterior free edge"),
+    # (before session 59 such clips were cut at the commissures without a word: 400 mm tied
+    # the whole free edges together)
+    ("repair.clip[0].width", 'repair.clip=[{at=0.5, width=400.0}]',
+     "a 400 mm clip centred"),
+    ("repair.clip[0].width", 'repair.clip=[{at=0.0, width=10.0}]',
+     "free edge's posteromedial end runs"),
     ("repair.resection", ('repair.resection={leaflet="posterior", shape="quadrangular", '
                           'between=[0.0, 1.0], depth=0.5}'), "whole leaflet"),
 ])
 def test_impossible_repairs_exit_2_with_one_line(key, change, words, tmp_path):
     """A ring larger than the demo annulus (37 mm intercommissural), a neochord and a clip at
-    a point 30 mm above the valve (not on a free edge), a resection of the whole posterior
-    leaflet: exit code 2, one line naming the scene file and the key,
-    nothing written."""
+    a point 30 mm above the valve (not on a free edge), clips that run past a commissure by
+    more than a free-edge cell, a resection of the whole posterior leaflet: exit code 2, one
+    line naming the scene file and the key, nothing written."""
     out = tmp_path / "out"
     r = _cli("run", str(DEMO), "--out", str(out), "--set", "mesh.size=4.0", "--set", change)
     assert r.returncode == 2, r.stderr[-2000:]
