@@ -43,7 +43,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .io import RawSurface, _raise_from_root, mesh_from_arrays, read_surface
+from .io import (RawSurface, _raise_from_root, _root_or_error, mesh_from_arrays,
+                 read_surface)
 from .valve import ValveMesh, write_valve
 
 __all__ = ["ImportedValve", "check_surface", "refine_surface", "valve_from_file",
@@ -172,23 +173,6 @@ def refine_surface(raw: RawSurface, times: int, smooth: bool = False) -> RawSurf
         tri = children
     return RawSurface(points=points, triangles=tri, point_data=point_data, cell_data=cell_data,
                       lines=raw.lines, line_data=raw.line_data)
-
-
-def _root_or_error(comm, work):
-    """Run ``work`` on rank 0; its ValueError is raised on every rank with the same message."""
-    result = err = None
-    if comm.rank == 0:
-        try:
-            result = work()
-        except Exception as exc:  # noqa: BLE001 - re-raised on every rank below
-            err = exc
-    bad = comm.bcast(str(err) if isinstance(err, ValueError) else None, root=0)
-    if bad is not None:
-        if comm.rank == 0:
-            raise err
-        raise ValueError(bad)
-    _raise_from_root(comm, err)
-    return result
 
 
 # --- the valve on rank 0 ---------------------------------------------------------------------

@@ -338,6 +338,25 @@ def _raise_from_root(comm, err: BaseException | None) -> None:
     raise RuntimeError(f"rank 0 failed: {said}")
 
 
+def _root_or_error(comm, work):
+    """Collective: run ``work`` on rank 0 and return its result there (None elsewhere); its
+    ValueError (bad input) is raised on every rank with the same message, any other error as
+    :func:`_raise_from_root` does."""
+    result = err = None
+    if comm.rank == 0:
+        try:
+            result = work()
+        except Exception as exc:  # noqa: BLE001 - re-raised on every rank below (gmsh
+            err = exc             # raises plain Exception)
+    bad = comm.bcast(str(err) if isinstance(err, ValueError) else None, root=0)
+    if bad is not None:
+        if comm.rank == 0:
+            raise err
+        raise ValueError(bad)
+    _raise_from_root(comm, err)
+    return result
+
+
 def _cpp_mesh(msh):
     """The C++ mesh behind a dolfinx Python mesh (``_mesh`` in 0.5, ``_cpp_object`` later)."""
     for attr in ("_mesh", "_cpp_object"):

@@ -51,7 +51,7 @@ from typing import Sequence
 import numpy as np
 
 from .generators import SurfaceMesh, _gmsh_model, _orient
-from .io import _cpp_mesh, _raise_from_root, mesh_from_arrays, write_surface
+from .io import _cpp_mesh, _root_or_error, mesh_from_arrays, write_surface
 
 __all__ = ["ValveMesh", "valve", "write_valve", "surface_distance", "LEAFLETS", "MUSCLES"]
 
@@ -304,19 +304,9 @@ def valve(comm, *, ap_diameter: float = 28.0, commissural_diameter: float = 37.0
     params["basal_points"] = [[float(a) for a in p] for p in basal_points]
 
     _check(params)  # on every rank: the same ValueError everywhere
-    result = err = None
-    if comm.rank == 0:
-        try:
-            result = _build_on_root(params, annulus, papillary, anterior_direction)
-        except Exception as exc:  # gmsh raises plain Exception
-            err = exc
     # bad input data (a ValueError on rank 0) is a ValueError on every rank
-    bad = comm.bcast(str(err) if isinstance(err, ValueError) else None, root=0)
-    if bad is not None:
-        if comm.rank == 0:
-            raise err
-        raise ValueError(bad)
-    _raise_from_root(comm, err)
+    result = _root_or_error(comm, lambda: _build_on_root(params, annulus, papillary,
+                                                         anterior_direction))
     if comm.rank == 0:
         arrays, extras = result
     else:
