@@ -251,7 +251,6 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD, meshing: bool = False):
                 check_cells(len(raw.triangles) * 4.0 ** m["refine"],
                             f"mesh.refine = {m['refine']} of {m['file']}", scene.source, comm,
                             meshing)
-            if m["refine"]:
                 try:  # the file's own problems in its own nodes first
                     check_surface(comm, raw, m["labels"], source=m["file"])
                 except ValueError as e:
