@@ -1562,6 +1562,7 @@ def test_a_mesh_the_memory_would_not_hold_is_refused_before_it_is_made(tmp_path,
     with pytest.raises(AssertionError, match="meshed a mesh"):
         build_mesh(demo.with_changes({"mesh.size": 1.0}), MPI.COMM_SELF, meshing=True)
     monkeypatch.undo()
+    capsys.readouterr()  # (the 2 mm valve's line)
     for args, key, out in (
             (["run", str(demo.source), "--set", "mesh.size=0.001"], "mesh.size", tmp_path / "r"),
             (["mesh", "valve", "--size", "0.001"], "--size", tmp_path / "m.vtu")):
