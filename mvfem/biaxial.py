@@ -108,6 +108,9 @@ class PatchStress:
         W = LAWS[law](m, *self.constants.values(), **extra)
         sigma = cauchy_stress(W, m)
         # one point per cell: the stress is homogeneous on a P1 triangle
+        from mvfem import jitcache
+
+        jitcache.install()
         self._expr = fem.Expression(sigma, np.array([[1 / 3, 1 / 3]]))
         self._cells = np.array([0], dtype=np.int32)
 

@@ -16,11 +16,14 @@ from dolfinx import fem, mesh as dmesh
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from mvfem import jitcache
 from mvfem.errors import InputError
 from mvfem.forms import (LAWS, Membrane, cauchy_stress, is_exponential, membrane, unit_normal,
                          uses_fibre)
 from mvfem.forms.pressure import dead_potential, dead_pressure, follower_potential, follower_pressure
 from mvfem.scene import Scene
+
+jitcache.install()  # a form's compile left by a dead process is done again, not waited for
 
 __all__ = ["Model", "Region", "build_model", "build_mesh", "default_size", "lumped_mass"]
 
