@@ -82,12 +82,10 @@ def _patient(original):
                     _claims.append((cache_dir, module_name))
                 return obj, mod
             except TimeoutError:
-                last = _last_change(cache_dir, module_name)
-                if last is None or _set_aside(cache_dir, module_name):
-                    continue  # claimed again (by this process or another) below
-                if (cache_dir / f"{module_name}.c.cached").exists():
-                    continue  # made ready just now
-                # a live compile (or a dead one not yet stale): wait on
+                # a dead process's claim is set aside; then, as after a claim given up or
+                # made ready meanwhile, the look-up again claims or loads it; a live
+                # compile's (or a dead one's not yet stale) is waited on
+                _set_aside(cache_dir, module_name)
     get_cached_module.__wrapped__ = original
     return get_cached_module
 
