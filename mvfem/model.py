@@ -1021,27 +1021,10 @@ def _with_repairs(scene: Scene, surface, view, chords, tip, edges: dict):
     return out
 
 
-def _clip_within_edge(edge: dict, i: int, width: float, where: str) -> None:
-    """Input error when a clip ``width`` mm wide centred on free-edge node ``i`` (of
-    :func:`mvfem.repairs.free_edge`) runs past an end of the edge, a commissure, by more than
-    the edge's last segment there: its grasp would be cut there without a word (a clip 400 mm
-    wide tied the whole free edges)."""
-    arc = edge["arc"]
-    if len(arc) < 2:
-        return
-    for end, room, cell in (("posteromedial", arc[i] - arc[0], arc[1] - arc[0]),
-                            ("anterolateral", arc[-1] - arc[i], arc[-1] - arc[-2])):
-        past = width / 2 - room
-        if past > cell:
-            raise InputError(f"{where}: a {width:g} mm clip centred {room:.2g} mm from the "
-                             f"{edge['leaflet']} free edge's {end} end runs {past:.2g} mm past "
-                             f"it (that free edge is {arc[-1]:.1f} mm long): move it inward "
-                             "or make it narrower")
-
-
 def _ties(scene: Scene, surface, view, V):
     """Clips and sutures as :class:`mvfem.ties.Ties` (rank 0; empty elsewhere)."""
-    from mvfem.repairs import clip_pairs, free_edge, gap_default, snap_to_free_edge
+    from mvfem.repairs import (clip_pairs, clip_within_edge, free_edge, gap_default,
+                               snap_to_free_edge)
     from mvfem.ties import Ties
 
     comm = view.comm
@@ -1070,7 +1053,7 @@ def _ties(scene: Scene, surface, view, V):
                                    tolerance=c["tolerance"],
                                    where=f"{where}.{'points' if pts[1] else 'posterior'}")
             for edge, i_mid in ((ant, ia), (post, ip)):
-                _clip_within_edge(edge, i_mid, c["width"], f"{where}.width")
+                clip_within_edge(edge, i_mid, c["width"], f"{where}.width")
             p = clip_pairs(ant, post, ia, ip, c["width"], c["depth"], view.X, own)
             pairs.append(p)
             rest.append(np.full(len(p), gap0 if c["gap"] is None else c["gap"]))

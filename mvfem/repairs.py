@@ -57,6 +57,7 @@ __all__ = [
     "RING_SHAPES",
     "TIE_STIFFNESS",
     "clip_pairs",
+    "clip_within_edge",
     "free_edge",
     "neochordae",
     "on_root",
@@ -240,6 +241,24 @@ def snap_to_free_edge(edge: dict, at=None, point=None, tolerance: float = 1.5,
         raise InputError(f"{where}: {at:g} is not on the {name} free edge (it spans "
                          f"{pos[0]:.3f} .. {pos[-1]:.3f} along the leaflet)")
     return int(np.argmin(np.abs(pos - at)))
+
+
+def clip_within_edge(edge: dict, i: int, width: float, where: str) -> None:
+    """Input error when a clip ``width`` mm wide centred on free-edge node ``i`` (of
+    :func:`free_edge`) runs past an end of the edge, a commissure, by more than
+    the edge's last segment there: its grasp would be cut there without a word (a clip 400 mm
+    wide tied the whole free edges)."""
+    arc = edge["arc"]
+    if len(arc) < 2:
+        return
+    for end, room, cell in (("posteromedial", arc[i] - arc[0], arc[1] - arc[0]),
+                            ("anterolateral", arc[-1] - arc[i], arc[-1] - arc[-2])):
+        past = width / 2 - room
+        if past > cell:
+            raise InputError(f"{where}: a {width:g} mm clip centred {room:.2g} mm from the "
+                             f"{edge['leaflet']} free edge's {end} end runs {past:.2g} mm past "
+                             f"it (that free edge is {arc[-1]:.1f} mm long): move it inward "
+                             "or make it narrower")
 
 
 def _grasp_zone(edge: dict, i: int, width: float, depth: float, X: np.ndarray,
