@@ -1525,7 +1525,8 @@ def test_expected_cells_are_the_meshes_cells(mesh, slack):
 
 
 def _refusing(monkeypatch, memory: float):
-    """Hosts of ``memory`` bytes, and a valve generator that must not be reached."""
+    """Hosts of ``memory`` bytes; returns what makes the valve generator one that must not be
+    reached."""
     import sys
 
     import mvfem.meshes.valve  # noqa: F401 (the package's name `valve` is the function)
@@ -1537,7 +1538,7 @@ def _refusing(monkeypatch, memory: float):
 
     def never(*a, **kw):
         raise AssertionError("meshed a mesh the memory would not hold")
-    return model_mod, lambda: monkeypatch.setattr(valve_mod, "valve", never)
+    return lambda: monkeypatch.setattr(valve_mod, "valve", never)
 
 
 def test_a_mesh_the_memory_would_not_hold_is_refused_before_it_is_made(tmp_path, monkeypatch,
@@ -1551,7 +1552,7 @@ def test_a_mesh_the_memory_would_not_hold_is_refused_before_it_is_made(tmp_path,
     from mvfem.scene import load_scene
 
     demo = load_scene(Path(__file__).parents[1] / "mvfem" / "data" / "demo.toml")
-    model_mod, stop_meshing = _refusing(monkeypatch, 100e6)
+    stop_meshing = _refusing(monkeypatch, 100e6)
     assert build_mesh(demo, MPI.COMM_SELF).mesh.topology.index_map(2).size_local == 1144
     stop_meshing()
     with pytest.raises(InputError) as e:
