@@ -825,6 +825,10 @@ def test_other_ranks_wait_for_rank_0_asleep_and_lend_it_their_cores(comm, monkey
     narrow = {cores[comm.rank % len(cores)]}
     given = comm.allgather((host, narrow))
     expected = len(set().union(*[cs for h, cs in given if h == given[0][0]]))
+    # (the kernels loaded first: OpenMP, started within the narrowed affinity, would take its
+    # one core as its default team, and a serial run expects the team it had; the test failed
+    # where it ran before any other had loaded them, e.g. alone)
+    kernels.threads()
     os.sched_setaffinity(0, narrow)
     try:
         n = lend_cores(comm)
