@@ -621,11 +621,14 @@ def _import_gmsh_before_mpi() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run `mvfem` with ``argv`` (default: sys.argv[1:]); returns the exit code."""
+    from mvfem.outputs import given_back_if_unused
+
     _import_gmsh_before_mpi()
     try:
         args = build_parser().parse_args(argv)
         _setup_logging(args.verbose)
-        return args.func(args)
+        with given_back_if_unused():   # (an --out claimed, then an input error: not left)
+            return args.func(args)
     except InputError as e:
         _complain(f"mvfem: error: {e}")
         return 2

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from pathlib import Path
 
 from mvfem.errors import InputError
 
-__all__ = ["prepare_out", "prepare_out_on_root", "write_json", "remove_earlier_files", "MARKER",
-           "RUN_FILES"]
+__all__ = ["prepare_out", "prepare_out_on_root", "given_back_if_unused", "write_json",
+           "remove_earlier_files", "MARKER", "RUN_FILES"]
 
 #: file that marks a directory as mvfem output, so later runs may write into it again
 MARKER = ".mvfem-output"
@@ -37,12 +38,48 @@ def prepare_out(out: str | os.PathLike, option: str = "--out") -> Path:
         if path.is_dir() and any(path.iterdir()) and not (path / MARKER).exists():
             raise InputError(f"{option} {path}: directory exists, is not empty and was not "
                              "written by mvfem; choose a new directory")
+        new = [p for p in (path, *path.parents) if not p.exists()][::-1]  # (outermost first)
+        marked = (path / MARKER).exists()
         path.mkdir(parents=True, exist_ok=True)
+        _made.extend(new)
         (path / MARKER).touch()
+        if not marked:
+            _made.append(path / MARKER)
     except OSError as e:   # (a parent that is a file, no permission, a read-only disk)
         raise InputError(f"{option} {path}: cannot be used as the output directory "
                          f"({e.strerror or e})") from None
     return path
+
+
+#: what :func:`prepare_out` made, in order: the directories (with the parents it made) and
+#: the markers it put into directories that had none
+_made: list[Path] = []
+
+
+@contextlib.contextmanager
+def given_back_if_unused():
+    """What :func:`prepare_out` makes within the block is removed again if the block ends by
+    an exception and the directory holds nothing but mvfem's marker: a command claims its
+    output directory before it reads the mesh or builds the model, and an input error found
+    there (exit code 2, "nothing is written") or a Ctrl-C during the set-up would otherwise
+    leave an empty directory behind (or a marker in a user's empty one). A directory this
+    command wrote into, or that held anything before, is kept as it is."""
+    since = len(_made)
+    try:
+        yield
+    except BaseException:
+        for p in reversed(_made[since:]):   # (innermost first: a marker before its directory)
+            try:
+                if p.name == MARKER:
+                    if {q.name for q in p.parent.iterdir()} == {MARKER}:
+                        p.unlink()
+                elif not any(p.iterdir()):
+                    p.rmdir()
+            except OSError:   # (gone already, or written into meanwhile by another process)
+                pass
+        raise
+    finally:
+        del _made[since:]
 
 
 def write_json(data: dict, path: str | os.PathLike) -> None:

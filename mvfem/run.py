@@ -826,7 +826,8 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     refined run measures its own mesh error"), and the outputs add ``map_level_change.png``.
 
     Raises:
-        InputError: the scene is invalid (nothing is written).
+        InputError: the scene is invalid (nothing is written; an ``out`` this call made is
+            removed again: :func:`mvfem.outputs.given_back_if_unused`).
     Returns:
         A :class:`Result`; ``result.converged`` is False when the solver stopped short, in which
         case the last converged state is what the outputs show.
@@ -838,7 +839,9 @@ def solve(scene: Scene | dict | str, out: str | Path | None = None, comm=MPI.COM
     (0.44-0.46 against 0.47-0.51 s), a run alone costs the same a step, and the CPU it burns
     falls by a third (README "Threads that wait, asleep", session 36).
     """
-    with kernels.one_blas_thread():
+    from mvfem.outputs import given_back_if_unused
+
+    with kernels.one_blas_thread(), given_back_if_unused():
         scene = load_scene(scene)
         if scene["mesh"]["accuracy"] is not None:
             if resume is not None:

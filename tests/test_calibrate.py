@@ -73,6 +73,25 @@ def test_bad_input_exits_2_with_one_line(tmp_path, reference, case, args, words)
     assert not (tmp_path / "out").exists()
 
 
+@serial
+def test_an_input_error_in_an_evaluation_leaves_no_directory(tmp_path, reference):
+    """The checks before the output directory pass, then the first evaluation's model is an
+    input error (a fibre direction along the disk's normal): exit code 2, one line, and the
+    directory with its ``evals/`` made meanwhile removed again (until session 60 left holding
+    the markers alone)."""
+    (tmp_path / "disk.toml").write_text(
+        'title = "disk"\n[mesh]\ngenerator = "disk"\nradius = 10.0\nsize = 2.5\n'
+        '[fibres]\ndirection = [0, 0, 1]\n[[region]]\nlaw = "mny"\nparams = "MNY-mean"\n')
+    r = run_child([sys.executable, "-m", "mvfem.cli", "calibrate", "disk.toml", "--reference",
+                   str(reference / "near.vtu"), "--fit", "load.pressure", "--bounds",
+                   "1000:2000", "--out", "out"],
+                  capture_output=True, text=True, env=_env(), cwd=tmp_path, timeout=120)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2, r.stderr
+    assert len(lines) == 1 and "fibres.direction" in lines[0], r.stderr
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.slow
 def test_synthetic_truth(shared_tmp):
     """Close the demo valve at mesh size 4 mm with marginal length factor 1.1; write its closed

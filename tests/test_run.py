@@ -186,6 +186,38 @@ def test_quiet_phases_say_what_is_going_on(tmp_path, capsys, monkeypatch):
     assert "converged: 16 kPa" in out
 
 
+def test_an_input_error_after_the_claim_leaves_no_directory(tmp_path, capsys):
+    """A run claims its ``--out`` (made, marked) before it builds the model; an input error
+    found there (a fibre direction along the disk's normal) is exit code 2 with nothing
+    written: the directories it made, parents too, are removed again, and so is the marker it
+    put into a user's empty directory (the directory stays); an earlier run's directory keeps
+    its files. ``mvfem.solve(out=...)`` the same. Until session 60 the directory was left
+    holding only the marker."""
+    from mvfem.outputs import MARKER
+
+    scene = tmp_path / "disk.toml"
+    scene.write_text('title = "disk"\n[mesh]\ngenerator = "disk"\nradius = 10.0\nsize = 2.5\n'
+                     '[fibres]\ndirection = [0, 0, 1]\n'
+                     '[[region]]\nlaw = "mny"\nparams = "MNY-mean"\n')
+    users = tmp_path / "mine"
+    users.mkdir()
+    earlier = tmp_path / "earlier"
+    earlier.mkdir()
+    (earlier / MARKER).touch()
+    (earlier / "summary.json").write_text("{}\n")
+    for out in (tmp_path / "new" / "deeper", users, earlier):
+        capsys.readouterr()
+        assert main(["run", str(scene), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "fibres.direction" in err[0], err
+    assert not (tmp_path / "new").exists()
+    assert list(users.iterdir()) == []
+    assert sorted(p.name for p in earlier.iterdir()) == [MARKER, "summary.json"]
+    with pytest.raises(InputError, match="fibres.direction"):
+        solve(str(scene), out=tmp_path / "api", progress=False)
+    assert not (tmp_path / "api").exists()
+
+
 def test_a_run_into_an_earlier_runs_directory_leaves_none_of_its_files(tmp_path, capsys):
     """A run writing into a directory an earlier run wrote (mvfem's marker in it) removes the
     earlier run's files that it does not write itself: a disk has no chordae, no valve or
@@ -1574,8 +1606,7 @@ def test_a_mesh_the_memory_would_not_hold_is_refused_before_it_is_made(tmp_path,
         assert main(args + ["--out", str(out)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"{key} = 0.001 mm would make about 4400 million cells" in err[0]
-        # (a run claims its directory, marked, before it builds the model)
-        assert not out.exists() or [p.name for p in out.iterdir()] == [".mvfem-output"]
+        assert not out.exists()
 
 
 def test_a_valve_file_refined_beyond_the_memory_is_refused(tmp_path, monkeypatch):
