@@ -760,6 +760,30 @@ def test_ring_too_small_says_why_it_stops():
 
 
 @pytest.mark.slow
+def test_a_small_ring_on_the_patient_valve_closes_on_1_5_mm(caplog):
+    """The patient valve with a 28 mm D ring (0.65 of its annulus perimeter) on 1.5 mm,
+    ``ramp_steps`` 20: its capped problem's end game stalled at 98 x the tolerance, four
+    restarts going through the same 39 steps, and the run stopped after 1048 steps (session
+    59, exit code 3). A restart that did not halve the residual is now followed by one ten
+    times slower (``PseudoTransient.restart_weight_after``), and the run converges, its
+    residual within the tolerance, the motion complete and the leaflets apart."""
+    import logging
+
+    scene = mvfem.load_scene(SCENES / "valve_patient.toml").with_changes(
+        {"repair.ring": {"shape": "d-shaped", "size": 28.0}, "mesh.size": 1.5,
+         "solver.ramp_steps": 20})
+    with caplog.at_level(logging.DEBUG, logger="mvfem.solver"):
+        r = mvfem.solve(scene, progress=False, write=False)
+    s = r.summary
+    restarts = [m for m in caplog.messages if "pseudo-time restart" in m]
+    print(f"{s['newton_iterations']} steps, {s['wall_time_s']:.1f} s; " + "; ".join(restarts))
+    assert s["converged"], s["stop_reason"]
+    assert s["motion"]["completed_at_step"] is not None
+    assert s["max_penetration_mm"] == 0.0
+    assert s["equilibrium_residual"] <= scene["solver"]["tolerance"]   # (the true law's)
+
+
+@pytest.mark.slow
 def test_ring_too_small_closes_with_fibres_that_bear_tension_only(unrepaired):
     """The same 32 mm ring with ``region.fibre_compression = false`` on both leaflets: the
     fibres at the annulus, compressed to about 0.57, add nothing, the largest exponent stays

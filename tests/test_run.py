@@ -483,6 +483,46 @@ def test_pseudo_time_converges_at_its_roundoff_floor():
         assert abs(z - root) < 1e-12   # (as close: only the test differs)
 
 
+class _NoRoot:
+    """A point term on node 0's z displacement with force ``z^2 + 1``: no equilibrium (with
+    the harness's spring ``c z / 18``, c = 0.01, ``z^2 + c z / 18 + 1`` keeps above 0.99), so
+    Newton's regime stalls, the residual near 1, however often it restarts."""
+
+    def __init__(self, X):
+        self.X = X
+
+    def __call__(self, x):
+        from mvfem.nodal import Blocks
+
+        z = x[0, 2] - self.X[0, 2]
+        f = np.zeros((1, 1, 3))
+        f[0, 0, 2] = z ** 2 + 1
+        K = np.zeros((1, 3, 3))
+        K[0, 2, 2] = 2 * z
+        return Blocks(np.zeros((1, 1), dtype=np.int64), f, K, 0.0)
+
+
+def test_a_restart_that_did_not_halve_the_residual_is_followed_by_a_slower_one():
+    """``PseudoTransient.restart_weight_after``: after ``restart_after`` refusals in a row in
+    Newton's regime pseudo-time restarts at ``restart_weight`` x ``k0``; where the last
+    restart did not halve the residual, the next one starts ``restart_growth`` x slower than
+    it (from nearly the same state the same weight would repeat its path: the ringed patient
+    valve on 1.5 mm did, four times). A problem without an equilibrium (residual >= 0.99
+    throughout) restarts at 1e3, 1e4, 1e5, 1e6 and 1e7 x ``k0``; a restart that halved the
+    residual is followed by one at ``restart_weight`` again."""
+    info, ptc, z, _ = _one_node(_NoRoot, "noroot_", z0=1.0, potential=False, k0=2.0,
+                                max_steps=2000, convexify=False)
+    h = ptc.history
+    assert not info.converged and min(r.residual for r in h) > 0.99
+    # a restart: after a refusal a weight other than shrink x the refused one's
+    starts = [h[i].weight for i in range(1, len(h)) if not h[i - 1].accepted
+              and not np.isclose(h[i].weight, ptc.shrink * h[i - 1].weight, rtol=1e-12)]
+    assert starts == [2.0 * 10.0 ** e for e in (3, 4, 5, 6, 7)], starts
+    assert ptc.restart_weight_after(1e4, 1.0, 0.5) == 1e3     # halved: back to the first
+    assert ptc.restart_weight_after(1e4, 1.0, 0.51) == 1e5
+    assert ptc.restart_weight_after(1e4, None, 0.51) == 1e3   # (the first restart)
+
+
 def test_pseudo_time_starts_at_its_first_weight():
     """``PseudoTransient.k_first``: the first step is taken at that weight, the weight then
     evolving as from any start. The double well from z = 0.05 with ``k0`` = 0.5: from ``k0``
