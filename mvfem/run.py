@@ -1169,16 +1169,18 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
     if model.motion:
         summary["motion"] = {**model.motion, "ramp_steps": model.ramp_steps,
                              "order": s["motion"], "exponent_capped": capped_stop}
+        # the step after which the laws' exponent was no longer capped (MOTION_CAP); None
+        # where the run stopped with it capped (its final residual is the true law's all the
+        # same; until session 60 such a stop gave its last step here)
+        raised = None if capped_stop else cap_raised_at
         if hook is not None:  # the pseudo-time step whose call completed it (None: it did not)
             summary["motion"]["completed_at_step"] = hook.completed_at
-            # the step after which the laws' exponent was no longer capped (MOTION_CAP)
-            summary["motion"]["cap_raised_at_step"] = cap_raised_at
+            summary["motion"]["cap_raised_at_step"] = raised
         elif resumed is not None:  # complete from the start: in the state resumed
             summary["motion"]["completed_at_step"] = 0
             summary["motion"]["resumed_complete"] = True
             # (0: the law was no longer capped when the run resumed started)
-            summary["motion"]["cap_raised_at_step"] = (cap_raised_at if resumed["motion_capped"]
-                                                       else 0)
+            summary["motion"]["cap_raised_at_step"] = raised if resumed["motion_capped"] else 0
         elif seq is not None and seq.get("motion_complete"):
             # complete from the start: ramped on the coarsest level (coarse_start's records)
             summary["motion"]["completed_at_step"] = 0

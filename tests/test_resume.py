@@ -183,6 +183,8 @@ def test_a_ring_repair_resumes_once_its_motion_is_complete(tmp_path, capsys):
         part = stop_at(n)
         assert f"(--resume {part} goes on from it)" in capsys.readouterr().err
         assert _summary(part)["motion"]["exponent_capped"] is capped
+        # (stopped capped: the cap never raised; until session 60 the stop's last step)
+        assert _summary(part)["motion"]["cap_raised_at_step"] == (None if capped else raised)
         assert main(["run", str(scene), "--resume", str(part), "--out", str(part)]) == 0
         r = _summary(part)
         assert r["converged"] and r["motion"]["completed_at_step"] == 0
