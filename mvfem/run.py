@@ -1058,8 +1058,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                 # beyond the cap; else go on with the true cap from here
                 relaxed = _relaxed(model, cap)
                 model.exponent_cap.value = MAX_EXPONENT
-                if seq is not None:
-                    seq["cap_raised_at_step"] = newton_its
+                if seq is not None:   # (None: stopped with it capped, as motion's below)
+                    seq["cap_raised_at_step"] = newton_its if info.converged else None
                 cap_raised_at = newton_its
                 # stopped short of the capped problem's equilibrium: a resumed run goes on
                 # with the cap (summary.json motion.exponent_capped, _resume)

@@ -140,6 +140,19 @@ def test_patient_valve_converges(patient):
     _closed(patient)
 
 
+def test_a_sequenced_level_stopped_with_its_exponent_capped_says_so():
+    """A level started from a coarser closure runs with the Fung laws' exponent capped until
+    its cells relax: stopped before (``solver.max_steps`` 1 and 3 on the 3 mm demo from its
+    4 mm closure), its ``coarse_start.cap_raised_at_step`` is None, not the stop's last step
+    (as until session 60, which read as though the true law had gone on from there)."""
+    for n in (1, 3):
+        scene = mvfem.load_scene(DEMO).with_changes(
+            {"solver.coarse_start": 4.0, "mesh.size": 3.0, "solver.max_steps": n})
+        s = mvfem.solve(scene, progress=False, write=False, outputs=False).summary
+        assert not s["converged"] and s["newton_iterations"] == n
+        assert s["coarse_start"]["used"] and s["coarse_start"]["cap_raised_at_step"] is None
+
+
 @pytest.mark.slow
 def test_coarse_start_reaches_the_same_closure_in_fewer_steps(demo):
     """Grid sequencing (solver.coarse_start = 4 mm, mvfem/sequence.py): the demo closed on a
