@@ -17,12 +17,21 @@ aside (``.c.stale``) and the form compiled afresh. A claim younger than that is 
 It also wraps ``compile_forms`` and ``compile_expressions``: a compile this process claimed
 and a ``KeyboardInterrupt`` or ``SystemExit`` ended (a second Ctrl-C) gives its claim up
 (``.c.failed``, as FFCx does after an ``Exception``), so that nobody waits for it.
+
+A process that claims a module writes who it is beside the claim (``.c.owner``: host and
+pid); a claim whose owner on this host is no longer running is set aside at once, without
+the :data:`STALE_S` wait (session 60: every fresh-cache test suite met one such claim, left
+by a test's run killed inside a compile, and waited its 60 s). A claim that ends without
+its ready mark loses its owner file first (set aside, given up, or FFCx's own clean-up after
+an ``Exception``), so that none speaks for the next claim; a claim without one (its owner
+not yet written), another host's, or one whose owner runs is left to the age rule.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import socket
 import time
 from pathlib import Path
 
@@ -55,20 +64,64 @@ def _last_change(cache_dir: Path, module_name: str) -> float | None:
     return newest
 
 
+def _owner(cache_dir: Path, module_name: str) -> Path:
+    return cache_dir / f"{module_name}.c.owner"
+
+
+def _write_owner(cache_dir: Path, module_name: str) -> None:
+    """Say beside a claim just made which process on which host made it."""
+    try:
+        _owner(cache_dir, module_name).write_text(f"{socket.gethostname()} {os.getpid()}\n")
+    except OSError:   # (the age rule alone then)
+        pass
+
+
+def _drop_owner(cache_dir: Path, module_name: str) -> None:
+    """Remove a claim's owner file before the claim ends without its ready mark, so that no
+    owner file outlives its claim and speaks for the next one."""
+    try:
+        _owner(cache_dir, module_name).unlink()
+    except OSError:
+        pass
+
+
+def _owner_gone(cache_dir: Path, module_name: str) -> bool:
+    """Whether the claim's owner file names a process of this host that no longer runs."""
+    try:
+        host, pid = _owner(cache_dir, module_name).read_text().split()
+        pid = int(pid)
+    except (OSError, ValueError):
+        return False
+    if host != socket.gethostname() or pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:   # (running, another user's)
+        return False
+    return False
+
+
 def _set_aside(cache_dir: Path, module_name: str) -> bool:
     """Move a dead process's claim aside (True), unless it changed since it was judged."""
     c = cache_dir / f"{module_name}.c"
     last = _last_change(cache_dir, module_name)
-    if last is None or time.time() - last < STALE_S:
+    if last is None:
+        return False
+    gone = _owner_gone(cache_dir, module_name)
+    if not gone and time.time() - last < STALE_S:
         return False
     if (cache_dir / f"{module_name}.c.cached").exists():
         return False
+    _drop_owner(cache_dir, module_name)
     try:
         os.replace(c, c.with_suffix(f".c.stale{os.getpid()}"))
     except FileNotFoundError:
         return False
+    why = "its process is gone" if gone else f"unchanged for {time.time() - last:.0f} s"
     log.warning(f"JIT cache: {c.name} was left by a process that died compiling it "
-                f"(unchanged for {time.time() - last:.0f} s); compiling it again")
+                f"({why}); compiling it again")
     return True
 
 
@@ -79,6 +132,7 @@ def _patient(original):
             try:
                 obj, mod = original(module_name, object_names, cache_dir, timeout)
                 if obj is None:  # claimed: this process compiles it
+                    _write_owner(cache_dir, module_name)
                     _claims.append((cache_dir, module_name))
                 return obj, mod
             except TimeoutError:
@@ -99,10 +153,16 @@ def _giving_up(original):
             for cache_dir, module_name in _claims[depth:]:
                 c = cache_dir / f"{module_name}.c"
                 if not (cache_dir / f"{module_name}.c.cached").exists():
+                    _drop_owner(cache_dir, module_name)
                     try:
                         os.replace(c, c.with_suffix(".c.failed"))
                     except FileNotFoundError:
                         pass
+            raise
+        except Exception:   # (FFCx gives the claim up itself: its owner file goes too)
+            for cache_dir, module_name in _claims[depth:]:
+                if not (cache_dir / f"{module_name}.c.cached").exists():
+                    _drop_owner(cache_dir, module_name)
             raise
         finally:
             del _claims[depth:]

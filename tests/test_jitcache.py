@@ -10,6 +10,7 @@ old and young, in a cache of their own with FFCx's wait cut to 1 s.
 from __future__ import annotations
 
 import os
+import re
 import time
 
 import pytest
@@ -61,8 +62,9 @@ def test_a_young_claim_is_waited_for(tmp_path, monkeypatch):
 
 def test_a_compile_interrupted_in_this_process_gives_its_claim_up(tmp_path, monkeypatch):
     """A second Ctrl-C inside a compile (a ``KeyboardInterrupt`` out of FFCx's code
-    generation, which FFCx does not clean up after): the claim becomes ``.c.failed`` and the
-    next compile of the form goes ahead at once (FFCx alone: TimeoutError after 1 s)."""
+    generation, which FFCx does not clean up after): the claim becomes ``.c.failed``, its
+    owner file is removed, and the next compile of the form goes ahead at once (FFCx alone:
+    TimeoutError after 1 s)."""
     import ffcx.codegeneration.jit as jit
 
     jitcache.install()
@@ -79,4 +81,37 @@ def test_a_compile_interrupted_in_this_process_gives_its_claim_up(tmp_path, monk
             fem.form(a, jit_params=params)
     assert not list(tmp_path.glob("libffcx_forms_*.c"))
     assert len(list(tmp_path.glob("libffcx_forms_*.c.failed"))) == 1
+    assert not list(tmp_path.glob("libffcx_forms_*.c.owner"))   # (its owner file gone too)
     assert fem.assemble_scalar(fem.form(a, jit_params=params)) == pytest.approx(3.5, rel=1e-12)
+
+
+@pytest.mark.parametrize("owner", ["gone", "running", "another host", "none"])
+def test_a_claim_whose_process_is_gone_is_compiled_again_at_once(tmp_path, monkeypatch,
+                                                                  caplog, owner):
+    """A claim just made (age 0) whose owner file names a process of this host that has
+    exited is set aside at FFCx's first 1 s wait, its process gone; one whose owner still
+    runs (this test's parent), another host's, or a claim without an owner file waits for
+    the age rule (STALE_S, 3 s here). Each ends with the form compiled (2.5 x the unit
+    square's area) and its own claim's owner file naming this process. Until session 60
+    every claim waited STALE_S (60 s: once in every fresh-cache suite)."""
+    import logging
+    import socket
+    import subprocess
+
+    monkeypatch.setattr(jitcache, "STALE_S", 3.0)
+    a, params, c = _claimed(tmp_path, 0.0)
+    done = subprocess.Popen(["true"])        # a pid of this host that has exited (reaped)
+    done.wait()
+    pid = os.getppid() if owner == "running" else done.pid
+    host = "elsewhere.invalid" if owner == "another host" else socket.gethostname()
+    if owner != "none":
+        (tmp_path / f"{c.name}.owner").write_text(f"{host} {pid}\n")
+    with caplog.at_level(logging.WARNING, logger="mvfem.jitcache"):
+        form = fem.form(a, jit_params=params)
+    assert fem.assemble_scalar(form) == pytest.approx(2.5, rel=1e-12)
+    (said,) = [r.getMessage() for r in caplog.records if r.name == "mvfem.jitcache"]
+    assert ("its process is gone" in said) is (owner == "gone"), said
+    assert (re.search(r"unchanged for \d+ s", said) is not None) is (owner != "gone"), said
+    # the compile's own claim said whose it was
+    assert (tmp_path / f"{c.name}.owner").read_text().split() == \
+        [socket.gethostname(), str(os.getpid())]
