@@ -56,6 +56,9 @@ class _StopRequest:
 
     def __init__(self) -> None:
         self.asked = False
+        #: a second Ctrl-C came (its KeyboardInterrupt may have been swallowed: see
+        #: :func:`_again`)
+        self.again = False
         self.active = False
         self.signum: int | None = None
         self.rank = 0  # (the line a signal prints is rank 0's)
@@ -91,6 +94,7 @@ def _on_signal(signum, frame) -> None:
     name = _name(signum)
     if _STOP.asked:  # the second: at once, as without this handler
         if signum == signal.SIGINT:
+            _STOP.again = True
             raise KeyboardInterrupt
         signal.signal(signum, signal.SIG_DFL)
         os.kill(os.getpid(), signum)
@@ -127,7 +131,7 @@ def stop_on_interrupt(comm):
     if _STOP.active:
         yield _STOP
         return
-    _STOP.asked, _STOP.signum, _STOP.rank = False, None, comm.rank
+    _STOP.asked, _STOP.again, _STOP.signum, _STOP.rank = False, False, None, comm.rank
     mine = []
     if threading.current_thread() is threading.main_thread():
         mine = [sig for sig, default in _SIGNALS.items() if signal.getsignal(sig) is default]
@@ -144,10 +148,22 @@ def stop_on_interrupt(comm):
             signal.signal(sig, handler)
 
 
+def _again() -> None:
+    """Raise the KeyboardInterrupt of a second Ctrl-C again: raised inside a callback or a
+    finaliser that ran when the signal came, Python swallows it ("Exception ignored in:
+    <function _get_module_lock.<locals>.cb ...>", a fresh-cache test suite in session 60),
+    and the run went on to write its outputs as after one Ctrl-C."""
+    if _STOP.again:
+        raise KeyboardInterrupt
+
+
 def stop_asked(comm=None) -> bool:
     """Whether Ctrl-C or SIGTERM asked the solve under way to stop (:func:`stop_on_interrupt`).
     With a communicator of several ranks, collective: whether it asked any of them, and then
-    the request is every rank's (the signal the same, SIGTERM where they differ)."""
+    the request is every rank's (the signal the same, SIGTERM where they differ). A second
+    Ctrl-C whose KeyboardInterrupt was swallowed raises it here (:func:`_again`)."""
+    if _STOP.active:
+        _again()
     if comm is None or comm.size == 1:
         return _STOP.active and _STOP.asked
     return agree_on_stop(comm, _STOP.active)
@@ -157,7 +173,8 @@ def agree_on_stop(comm, active: bool = True) -> bool:
     """Collective: make the request of every rank that of any (``active``: this rank's
     request counts, inside :func:`stop_on_interrupt`); whether there is one. After the
     context, the same for the steps' last one: a signal may reach one rank after the last
-    check."""
+    check. A second Ctrl-C whose KeyboardInterrupt was swallowed raises it (:func:`_again`)."""
+    _again()
     mine = int(_STOP.signum or 0) if (active and _STOP.asked) else 0
     signum = comm.allreduce(mine, op=MPI.MAX) if comm.size > 1 else mine
     if signum:

@@ -66,6 +66,35 @@ def test_the_first_ctrl_c_asks_the_second_raises_and_the_handler_goes_back(defau
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
 
 
+class _SecondCtrlCInAFinaliser:
+    """An object whose finaliser receives a Ctrl-C: Python swallows the KeyboardInterrupt
+    raised there ("Exception ignored in ..."), as it did in an import's lock callback."""
+
+    def __del__(self):
+        _deliver()
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_a_second_ctrl_c_that_python_swallowed_is_raised_at_the_next_check(default_sigint):
+    """A second Ctrl-C whose KeyboardInterrupt came inside a finaliser (swallowed there, as a
+    fresh-cache suite met it in session 60: the run went on to write its outputs as after
+    one Ctrl-C) raises KeyboardInterrupt at the steppers' next check (``stop_asked``) and
+    at the run's check after its steps (``agree_on_stop``); the next solve starts afresh."""
+    from mvfem.solver import agree_on_stop
+
+    with stop_on_interrupt(_Comm(1)) as stop:
+        _deliver()                          # the first: a request
+        _SecondCtrlCInAFinaliser()          # (collected at once: its __del__ swallows it)
+        assert stop.again
+        with pytest.raises(KeyboardInterrupt):
+            stop_asked()
+    with pytest.raises(KeyboardInterrupt):
+        agree_on_stop(_Comm(1))
+    with stop_on_interrupt(_Comm(1)):
+        assert not stop_asked()
+    assert not agree_on_stop(_Comm(1))
+
+
 def test_a_sigterm_asks_too(default_sigint):
     """SIGTERM (a batch system's time limit, ``timeout``) asks as Ctrl-C does, and says so
     (a second one ends the process: in ``test_a_second_ctrl_c_stops_at_once_writing_nothing``)."""
