@@ -92,8 +92,9 @@ def test_a_claim_whose_process_is_gone_is_compiled_again_at_once(tmp_path, monke
     exited is set aside at FFCx's first 1 s wait, its process gone; one whose owner still
     runs (this test's parent), another host's, or a claim without an owner file waits for
     the age rule (STALE_S, 3 s here). Each ends with the form compiled (2.5 x the unit
-    square's area) and its own claim's owner file naming this process. Until session 60
-    every claim waited STALE_S (60 s: once in every fresh-cache suite)."""
+    square's area), its own claim's owner file naming this process while it compiles and
+    removed after. Until session 60 every claim waited STALE_S (60 s: once in every
+    fresh-cache suite)."""
     import logging
     import socket
     import subprocess
@@ -106,12 +107,22 @@ def test_a_claim_whose_process_is_gone_is_compiled_again_at_once(tmp_path, monke
     host = "elsewhere.invalid" if owner == "another host" else socket.gethostname()
     if owner != "none":
         (tmp_path / f"{c.name}.owner").write_text(f"{host} {pid}\n")
+    import ffcx.codegeneration.jit as jit
+
+    owners = []
+
+    def compiling(*args, **kw):   # (who the claim says it is, while it compiles)
+        owners.append((tmp_path / f"{c.name}.owner").read_text().split())
+        return compile_objects(*args, **kw)
+
+    compile_objects = jit._compile_objects
+    monkeypatch.setattr(jit, "_compile_objects", compiling)
     with caplog.at_level(logging.WARNING, logger="mvfem.jitcache"):
         form = fem.form(a, jit_params=params)
     assert fem.assemble_scalar(form) == pytest.approx(2.5, rel=1e-12)
     (said,) = [r.getMessage() for r in caplog.records if r.name == "mvfem.jitcache"]
     assert ("its process is gone" in said) is (owner == "gone"), said
     assert (re.search(r"unchanged for \d+ s", said) is not None) is (owner != "gone"), said
-    # the compile's own claim said whose it was
-    assert (tmp_path / f"{c.name}.owner").read_text().split() == \
-        [socket.gethostname(), str(os.getpid())]
+    # the compile's own claim said whose it was, and the owner file went with the compile
+    assert owners == [[socket.gethostname(), str(os.getpid())]]
+    assert not (tmp_path / f"{c.name}.owner").exists()
