@@ -14,18 +14,19 @@ made killed it inside the compile of the outputs' forms, and 28 later tests fail
 none of the module's files has changed for :data:`STALE_S` seconds (a compile of mvfem's
 largest form writes its files within 3 s here), the claim is a dead process's; it is moved
 aside (``.c.stale``) and the form compiled afresh. A claim younger than that is waited for.
-It also wraps ``compile_forms``, ``compile_expressions`` and ``compile_elements``: a compile this process claimed
-and a ``KeyboardInterrupt`` or ``SystemExit`` ended (a second Ctrl-C) gives its claim up
-(``.c.failed``, as FFCx does after an ``Exception``), so that nobody waits for it.
+It also wraps ``compile_forms``, ``compile_expressions`` and ``compile_elements``: a compile
+this process claimed and a ``KeyboardInterrupt`` or ``SystemExit`` ended (a second Ctrl-C)
+gives its claim up (``.c.failed``, as FFCx does after an ``Exception``), so that nobody
+waits for it.
 
 A process that claims a module writes who it is beside the claim (``.c.owner``: host and
 pid); a claim whose owner on this host is no longer running is set aside at once, without
 the :data:`STALE_S` wait (session 60: every fresh-cache test suite met one such claim, left
 by a test's run killed inside a compile, and waited its 60 s). The owner file goes
-when its compile ends (compiled, given up, or after FFCx's own clean-up after an
-``Exception``), before a claim is set aside or given up, so that none speaks for the next
-claim; a claim without one (its owner not yet written), another host's, or one whose owner
-runs is left to the age rule.
+before a claim is set aside or given up, and when its compile ends (compiled, or after
+FFCx's own clean-up after an ``Exception``), so that none speaks for the next claim; a claim
+without one (its owner not yet written, or its file removed by the last claim's clean-up a
+moment late), another host's, or one whose owner runs is left to the age rule.
 """
 
 from __future__ import annotations
