@@ -18,7 +18,9 @@ runs for every case of a comparison and reports each number's range (session 46)
 script also varies ``solver.motion``.
 
 Bad input (a missing scene or repair file, a bad key, a list that is not numbers, an
-``--out`` that exists) is one line and exit code 2, before any run.
+``--out`` that exists) is one line and exit code 2, before any run. Ctrl-C or SIGTERM during a
+run stops it at a step boundary; the runs already done are printed (and written to ``--out``,
+marked ``"interrupted"``), with one line saying so, and the exit code is 130 or 143.
 """
 
 from __future__ import annotations
@@ -41,8 +43,11 @@ KEYS = (("regurgitant_orifice_area_mm2", "orifice mm^2"),
 
 
 def closures(scene_path: str, repair: str | None = None, ramp_steps=(10, 20, 30, 40),
-             motions=("with-pressure",), changes: dict | None = None) -> list[dict]:
-    """One record per (motion, ramp_steps): the path, converged, steps, wall time and KEYS."""
+             motions=("with-pressure",), changes: dict | None = None,
+             runs: list | None = None) -> list[dict]:
+    """One record per (motion, ramp_steps): the path, converged, steps, wall time and KEYS.
+    Each is appended to ``runs`` (a new list if None) as its run ends, so a caller that is
+    interrupted keeps the runs done."""
     scene = mvfem.load_scene(scene_path)
     title = scene.data.get("title") or Path(scene_path).stem
     if repair is not None:
@@ -52,7 +57,7 @@ def closures(scene_path: str, repair: str | None = None, ramp_steps=(10, 20, 30,
         scene = scene.with_changes(repair_changes)
     if changes:
         scene = scene.with_changes(changes)
-    runs = []
+    runs = [] if runs is None else runs
     for motion in motions:
         for n in ramp_steps:
             t0 = time.perf_counter()
@@ -128,14 +133,24 @@ def main(argv=None) -> int:
                 raise InputError(f"{f}: no such file")
         if a.out and Path(a.out).exists():  # nothing a user wrote is overwritten
             raise InputError(f"--out {a.out}: exists; choose another name")
-        runs = closures(a.scene, a.repair, steps, motions, changes)
+        runs: list[dict] = []
+        stop = None
+        try:
+            closures(a.scene, a.repair, steps, motions, changes, runs=runs)
+        except KeyboardInterrupt as e:  # (mvfem.Interrupted: a signal stopped a run)
+            stop = e
     except InputError as e:
         print(f"path_spread: {e}", file=sys.stderr)
         return 2
-    print(table(runs))
+    if stop is not None:
+        print(f"path_spread: {stop or 'interrupted'}; {len(runs)} of "
+              f"{len(steps) * len(motions)} runs done", file=sys.stderr)
+    if runs:
+        print(table(runs))
     if a.out:
-        Path(a.out).write_text(json.dumps({"runs": runs, "spread": spread(runs)}, indent=1))
-    return 0
+        Path(a.out).write_text(json.dumps({"runs": runs, "spread": spread(runs),
+                                           "interrupted": stop is not None}, indent=1))
+    return 0 if stop is None else getattr(stop, "exit_code", 130)
 
 
 if __name__ == "__main__":

@@ -381,6 +381,45 @@ def test_path_spread_script(tmp_path):
                                                  "another name"]
 
 
+def test_path_spread_stopped_by_a_signal_keeps_the_runs_done(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C or SIGTERM that stops path_spread.py's second run (``mvfem.solve`` raises
+    ``mvfem.Interrupted``, as a signal makes it: tests/test_interrupt.py) prints one line
+    and the first run's row, writes the done run to ``--out`` marked interrupted, and exits
+    with the signal's code, no traceback."""
+    import importlib.util
+    from types import SimpleNamespace
+
+    import mvfem
+
+    spec = importlib.util.spec_from_file_location("path_spread",
+                                                  ROOT / "scripts" / "path_spread.py")
+    ps = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ps)
+    calls = []
+
+    def fake_solve(scene, progress=True, write=True):
+        calls.append(scene.data["solver"]["ramp_steps"])
+        if len(calls) == 2:
+            raise mvfem.Interrupted("stopped by SIGTERM after 12 pseudo-time steps",
+                                    exit_code=143)
+        return SimpleNamespace(summary={"converged": True, "newton_iterations": 40,
+                                        "max_penetration_mm": 0.0,
+                                        "valve": {"coaptation_length_mm": 7.5}})
+
+    monkeypatch.setattr(mvfem, "solve", fake_solve)
+    out = tmp_path / "spread.json"
+    code = ps.main([str(ROOT / "scripts" / "scenes" / "valve_pathological.toml"),
+                    "--ramp-steps", "10,20,30", "--out", str(out)])
+    err = capsys.readouterr()
+    assert code == 143 and calls == [10, 20]
+    assert err.err.strip().splitlines()[-1] == (
+        "path_spread: stopped by SIGTERM after 12 pseudo-time steps; 1 of 3 runs done")
+    rows = [line for line in err.out.splitlines() if line.startswith("| with-pressure")]
+    assert len(rows) == 1 and "| 40 |" in rows[0]
+    d = json.loads(out.read_text())
+    assert d["interrupted"] is True and [r["ramp_steps"] for r in d["runs"]] == [10]
+
+
 def test_refine_surface_script(tmp_path):
     """scripts/refine_surface.py on the demo's valve at 5 mm split once (three closures, about
     12 s): the smooth split's new nodes lie closer to the generator's own surface than the
