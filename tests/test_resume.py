@@ -175,13 +175,17 @@ def test_a_ring_repair_resumes_once_its_motion_is_complete(tmp_path, capsys):
                      str(out)]) == 3
         return out
 
+    hint = "try mesh.size=8 with mesh.refine=1 (about as many cells"
     early = stop_at(done - 5)
-    assert "--resume" not in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--resume" not in err and hint in err  # (a motion that stopped on its own mesh)
     assert main(["run", str(scene), "--resume", str(early), "--out", str(tmp_path / "x")]) == 2
     assert "had not completed" in capsys.readouterr().err
     for n, capped in ((raised - 5, True), (raised + 2, False)):
         part = stop_at(n)
-        assert f"(--resume {part} goes on from it)" in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert f"(--resume {part} goes on from it)" in err
+        assert (hint in err) is capped  # (the capped problem had converged: not the crawl)
         assert _summary(part)["motion"]["exponent_capped"] is capped
         # (stopped capped: the cap never raised; until session 60 the stop's last step)
         assert _summary(part)["motion"]["cap_raised_at_step"] == (None if capped else raised)

@@ -1869,3 +1869,20 @@ def test_a_probe_off_the_surface_reads_the_closest_surface_point():
         np.testing.assert_allclose(p[name]["displacement_mm"], p[at]["displacement_mm"],
                                    rtol=1e-9, atol=1e-12)
     assert abs(p["on"]["displacement_mm"][2]) > 1.0   # (a deflected disk, not a zero)
+
+
+def test_the_level_by_level_hint_names_twice_the_size_refined_once():
+    """The hint a stopped motion's reason gets (:func:`mvfem.run._level_by_level_hint`):
+    twice the generated valve's size refined once, which has about as many cells (each
+    refinement splits a triangle in four); nothing for a refined valve, which is already
+    closed level by level, nor for a file's mesh, which has no coarser size."""
+    from mvfem.run import _level_by_level_hint
+    from mvfem.scene import load_scene
+
+    root = Path(__file__).parents[1]
+    demo = load_scene(root / "mvfem" / "data" / "demo.toml")
+    assert "try mesh.size=3 with mesh.refine=1" in _level_by_level_hint(
+        demo.with_changes({"mesh.size": 1.5}))
+    assert _level_by_level_hint(demo.with_changes({"mesh.size": 1.5, "mesh.refine": 1})) == ""
+    imported = load_scene(root / "scripts" / "scenes" / "valve_imported.toml")
+    assert _level_by_level_hint(imported) == ""
