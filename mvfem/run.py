@@ -1066,7 +1066,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                                   convex_window=window, k_first=k_first,
                                   symmetric_above=sym_above, max_steps=max_steps, on_step=on_step,
                                   max_move=MAX_MOVE * model.length_scale, ramp=hook,
-                                  ramp_steps=max_steps if hook is not None else 0)
+                                  ramp_steps=max_steps if hook is not None else 0,
+                                  load=load_norm)
             info = ptc.run()
             load_steps, newton_its = ptc.accepted_steps, len(ptc.history)
             convexified, symmetric = ptc.convexified, ptc.symmetric_solves
@@ -1094,7 +1095,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                                           convex_window=window,
                                           max_steps=max(max_steps - newton_its, 1),
                                           on_step=_PseudoTimeProgress(load_norm, progress),
-                                          max_move=MAX_MOVE * model.length_scale)
+                                          max_move=MAX_MOVE * model.length_scale,
+                                          load=load_norm)
                     info = ptc.run()
                     load_steps += ptc.accepted_steps
                     newton_its += len(ptc.history)

@@ -943,6 +943,16 @@ class PseudoTransient:
     #: the pseudo-time weight the next step would have taken: where a resumed run starts
     #: (``k_first``; summary.json ``pseudo_time.weight``, relative to the stabiliser scale)
     weight: float | None = None
+    #: the load's norm (:func:`mvfem.run._load_scale`): where given, a stop reason states the
+    #: residual and ``atol`` as fractions of it, as the progress lines do ("residual 3.81e+04
+    #: above the tolerance 0.00443" said nothing a user could compare); else in uN
+    load: float | None = None
+
+    def _above(self, r: float) -> str:
+        if self.load:
+            return (f"residual {r / self.load:.3g} of the load, above the tolerance "
+                    f"{self.atol / self.load:.3g} of it")
+        return f"residual {r:.3g} above the tolerance {self.atol:.3g}"
 
     def run(self) -> SolveInfo:
         """Advance from the problem's current ``u`` until ``||F|| <= atol``; ``u`` holds the
@@ -1046,8 +1056,8 @@ class PseudoTransient:
                                         "pseudo-time steps")
                     break
                 if its >= self.max_steps:
-                    self.stop_reason = (f"residual {r:.3g} above the tolerance {self.atol:.3g} "
-                                        f"after {its} pseudo-time steps (solver.max_steps)")
+                    self.stop_reason = (f"{self._above(r)} after {its} pseudo-time steps "
+                                        "(solver.max_steps)")
                     break
                 if monotone and in_a_row >= self.restart_after and restarts < self.restarts:
                     # the end game is stuck (the residual is only piecewise smooth where

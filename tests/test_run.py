@@ -523,6 +523,24 @@ def test_a_restart_that_did_not_halve_the_residual_is_followed_by_a_slower_one()
     assert ptc.restart_weight_after(1e4, None, 0.51) == 1e3   # (the first restart)
 
 
+def test_a_stop_at_the_step_budget_gives_the_residual_as_a_fraction_of_the_load():
+    """``PseudoTransient.load``: a run that used its steps says its residual and tolerance as
+    fractions of the load, the progress lines' unit; without a load, in uN as before. The
+    no-root problem's residual, 0.99 or more, is a quarter of a load of 4."""
+    pattern = (r"residual (\S+) of the load, above the tolerance 2\.5e-11 of it after 30 "
+               r"pseudo-time steps \(solver\.max_steps\)")
+    info, ptc, _, _ = _one_node(_NoRoot, "budget_", z0=1.0, potential=False, k0=2.0,
+                                max_steps=30, convexify=False, load=4.0)
+    m = re.fullmatch(pattern, ptc.stop_reason)
+    assert not info.converged and m, ptc.stop_reason
+    last = [h.residual for h in ptc.history if h.accepted][-1]
+    assert float(m.group(1)) == pytest.approx(last / 4.0, rel=1e-2) and last >= 0.99
+    _, plain, _, _ = _one_node(_NoRoot, "budget_plain_", z0=1.0, potential=False, k0=2.0,
+                               max_steps=30, convexify=False)
+    assert re.fullmatch(r"residual \S+ above the tolerance 1e-10 after 30 pseudo-time steps "
+                        r"\(solver\.max_steps\)", plain.stop_reason), plain.stop_reason
+
+
 def test_pseudo_time_starts_at_its_first_weight():
     """``PseudoTransient.k_first``: the first step is taken at that weight, the weight then
     evolving as from any start. The double well from z = 0.05 with ``k0`` = 0.5: from ``k0``
