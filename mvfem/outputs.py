@@ -41,19 +41,23 @@ def prepare_out(out: str | os.PathLike, option: str = "--out") -> Path:
         new = [p for p in (path, *path.parents) if not p.exists()][::-1]  # (outermost first)
         marked = (path / MARKER).exists()
         path.mkdir(parents=True, exist_ok=True)
-        _made.extend(new)
         (path / MARKER).touch()
-        if not marked:
-            _made.append(path / MARKER)
+        if _blocks:   # (outside any given_back_if_unused block nothing is given back)
+            _made.extend(new)
+            if not marked:
+                _made.append(path / MARKER)
     except OSError as e:   # (a parent that is a file, no permission, a read-only disk)
         raise InputError(f"{option} {path}: cannot be used as the output directory "
                          f"({e.strerror or e})") from None
     return path
 
 
-#: what :func:`prepare_out` made, in order: the directories (with the parents it made) and
-#: the markers it put into directories that had none
+#: what :func:`prepare_out` made within :func:`given_back_if_unused` blocks, in order: the
+#: directories (with the parents it made) and the markers it put into directories that had
+#: none; and how many such blocks are open (outside them nothing is recorded: bench,
+#: calibrate and compare called through the Python API would add a few paths a call)
 _made: list[Path] = []
+_blocks = 0
 
 
 @contextlib.contextmanager
@@ -64,7 +68,9 @@ def given_back_if_unused():
     there (exit code 2, "nothing is written") or a Ctrl-C during the set-up would otherwise
     leave an empty directory behind (or a marker in a user's empty one). A directory this
     command wrote into, or that held anything before, is kept as it is."""
+    global _blocks
     since = len(_made)
+    _blocks += 1
     try:
         yield
     except BaseException:
@@ -79,6 +85,7 @@ def given_back_if_unused():
                 pass
         raise
     finally:
+        _blocks -= 1
         del _made[since:]
 
 

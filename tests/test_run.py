@@ -218,6 +218,25 @@ def test_an_input_error_after_the_claim_leaves_no_directory(tmp_path, capsys):
     assert not (tmp_path / "api").exists()
 
 
+def test_output_directories_are_recorded_only_where_they_may_be_given_back(tmp_path):
+    """``prepare_out`` records what it made only inside a ``given_back_if_unused`` block,
+    which forgets it as the block ends; outside one (bench, calibrate and compare through the
+    Python API) the record stayed for the process's life. Inside, an exception gives the new
+    directory back; outside, the directory stays."""
+    from mvfem import outputs
+
+    before = list(outputs._made)
+    outputs.prepare_out(tmp_path / "outside" / "a")
+    assert outputs._made == before and (tmp_path / "outside" / "a").is_dir()
+    with pytest.raises(RuntimeError):
+        with outputs.given_back_if_unused():
+            outputs.prepare_out(tmp_path / "inside" / "b")
+            assert outputs._made[len(before):] == [tmp_path / "inside", tmp_path / "inside" / "b",
+                                                   tmp_path / "inside" / "b" / outputs.MARKER]
+            raise RuntimeError("an input error, say")
+    assert outputs._made == before and not (tmp_path / "inside").exists()
+
+
 def test_a_run_into_an_earlier_runs_directory_leaves_none_of_its_files(tmp_path, capsys):
     """A run writing into a directory an earlier run wrote (mvfem's marker in it) removes the
     earlier run's files that it does not write itself: a disk has no chordae, no valve or
