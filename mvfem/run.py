@@ -1083,6 +1083,8 @@ def _solve(scene, out, comm, progress: bool, write: bool, initial, outputs: bool
                 # stopped short of the capped problem's equilibrium: a resumed run goes on
                 # with the cap (summary.json motion.exponent_capped, _resume)
                 capped_stop = not info.converged
+                # (outputs: the scene's own level; a coarser level of a start is solved
+                # without them, and its stop is not the one a user reads)
                 if capped_stop and hook is not None and outputs and not ptc.interrupted:
                     ptc.stop_reason += _level_by_level_hint(scene)
                 if hook is not None and comm.rank == 0 and progress and info.converged:
