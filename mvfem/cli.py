@@ -316,10 +316,16 @@ def _cmd_mesh(args) -> int:
                              "kind; change the scene's mesh with --set mesh.KEY=VALUE")
     elif args.set:
         raise InputError("mvfem mesh: --set applies to a scene file (mvfem mesh SCENE.toml)")
-    if out.exists() and not args.force:
-        raise InputError(f"--out {out}: exists; choose another name or pass --force")
     if out.suffix.lower() not in (".vtu", ".vtk", ".xdmf", ".msh", ".stl", ".ply", ".obj"):
         raise InputError(f"--out {out}: unknown mesh format {out.suffix!r} (use .vtu, .xdmf, ...)")
+    # every file the command writes: the mesh, its info and, for .xdmf, meshio's heavy data
+    targets = [out, Path(str(out) + ".json")]
+    if out.suffix.lower() == ".xdmf":
+        targets.append(out.with_suffix(".h5"))
+    taken = [t for t in targets if t.exists() or t.is_symlink()]
+    if taken and not args.force:
+        what = "exists" if taken[0] == out else f"would replace {taken[0]}, which exists"
+        raise InputError(f"--out {out}: {what}; choose another name or pass --force")
     if from_scene:
         scene = load_scene(args.kind)
         if args.set:
@@ -357,6 +363,7 @@ def _cmd_mesh(args) -> int:
     tags = np.zeros(len(cells), dtype=np.int32)
     if surface.cell_tags is not None:
         tags[surface.cell_tags.indices] = surface.cell_tags.values
+    before = {t for t in targets if t.exists() or t.is_symlink()}
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         if valve:  # the import format of CONTRACT.md: leaflets, annulus, chordae
@@ -367,7 +374,11 @@ def _cmd_mesh(args) -> int:
             write_surface(out, x, cells, cell_data={"region": tags})
         surface.write_info(str(out) + ".json")
     except OSError as e:   # (a parent that is a file, no permission, a read-only disk)
-        raise InputError(f"--out {out}: cannot be written ({e.strerror or e})") from None
+        for t in targets:  # leave nothing half-made of what was not there before
+            if t not in before and t.is_file():
+                t.unlink()
+        where = f" {e.filename}" if e.filename and str(e.filename) != str(out) else ""
+        raise InputError(f"--out {out}:{where} cannot be written ({e.strerror or e})") from None
     _say(f"wrote {out} ({len(cells)} triangles, {len(x)} nodes) and {out}.json")
     return 0
 

@@ -140,6 +140,27 @@ def test_mesh_command_writes_readable_file(tmp_path, capsys):
     assert "--size" in capsys.readouterr().err
 
 
+def test_mesh_command_never_replaces_a_file_it_would_write_beside_the_mesh(tmp_path, capsys):
+    """The info file ``OUT.json`` and an .xdmf's ``.h5`` are the command's output too: a user's
+    file of that name is refused like the mesh itself, and a write that fails part way (the
+    info path a directory) leaves no mesh behind."""
+    mine = tmp_path / "m.vtu.json"
+    mine.write_text('{"mine": 1}')
+    assert main(["mesh", "disk", "--size", "4", "--out", str(tmp_path / "m.vtu")]) == 2
+    assert "m.vtu.json" in capsys.readouterr().err
+    assert mine.read_text() == '{"mine": 1}' and not (tmp_path / "m.vtu").exists()
+    heavy = tmp_path / "x.h5"
+    heavy.write_text("mine")
+    assert main(["mesh", "disk", "--size", "4", "--out", str(tmp_path / "x.xdmf")]) == 2
+    assert "x.h5" in capsys.readouterr().err and heavy.read_text() == "mine"
+    (tmp_path / "d.vtu.json").mkdir()
+    assert main(["mesh", "disk", "--size", "4", "--out", str(tmp_path / "d.vtu"),
+                 "--force"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "d.vtu.json" in err[0], err
+    assert not (tmp_path / "d.vtu").exists()
+
+
 @pytest.mark.mpi
 def test_bad_input_is_one_line_and_a_mesh_one_file_under_mpirun(shared_tmp, capsys,
                                                               monkeypatch):
