@@ -47,8 +47,8 @@ from .io import (RawSurface, _raise_from_root, _root_or_error, mesh_from_arrays,
                  read_surface)
 from .valve import ValveMesh, write_valve
 
-__all__ = ["ImportedValve", "check_surface", "refine_surface", "valve_from_file",
-           "valve_from_surface",
+__all__ = ["ImportedValve", "check_plain_surface", "check_surface", "refine_surface",
+           "valve_from_file", "valve_from_surface",
            "write_valve_with_chordae", "chord_lengths", "DEFAULT_LABELS", "FAMILY_CODES",
            "FORMATS"]
 
@@ -189,9 +189,7 @@ def _build(raw: RawSurface, labels: dict[int, str] | None, where: str, report: b
     points = np.asarray(raw.points, dtype=np.float64)
     tri = np.asarray(raw.triangles, dtype=np.int64).reshape(-1, 3)
     lines = np.asarray(raw.lines, dtype=np.int64).reshape(-1, 2)
-    for name, c in (("cells", tri), ("line cells", lines)):
-        if len(c) and (c.min() < 0 or c.max() >= len(points)):
-            raise ValueError(f"{where}: {name} refer to nodes that are not in the file")
+    _check_indices(points, tri, lines, where)
 
     value_of, file_labels, cell_leaflet = _leaflet_values(raw, labels, where, len(tri))
     if "annulus" not in raw.point_data:
@@ -203,13 +201,7 @@ def _build(raw: RawSurface, labels: dict[int, str] | None, where: str, report: b
                     if has_papillary else np.zeros(len(points), dtype=bool))
 
     used = np.unique(np.concatenate([tri.ravel(), lines.ravel(), np.flatnonzero(on_papillary)]))
-    finite = np.isfinite(points[used]).all(axis=1)
-    if not finite.all():
-        raise ValueError(f"{where}: {int(np.sum(~finite))} node(s) have non-finite coordinates "
-                         f"(first: node {int(used[~finite][0])})")
-    diag = float(np.linalg.norm(np.ptp(points[np.unique(tri)], axis=0)))
-    if not diag > 0:
-        raise ValueError(f"{where}: the leaflet cells have no extent")
+    diag = _check_finite(points, tri, used, where, "leaflet cells")
 
     said = []  # warnings
     # coincident nodes (e.g. a leaflet saved with its own copy of shared nodes): merged
@@ -329,6 +321,42 @@ def _build(raw: RawSurface, labels: dict[int, str] | None, where: str, report: b
               "axis": axis, "centre": centre, "frame": frame, "commissures": commissures,
               "annulus_curve": X[loop]}
     return (X, cells, cell_leaflet, b_edges, edge_values), extras
+
+
+def check_plain_surface(raw: RawSurface, where: str) -> None:
+    """Raise what a surface file without an annulus cannot be solved on, as a valve file's
+    import does (:func:`_build`): cells naming nodes not in the file, nodes with non-finite
+    coordinates, no extent, degenerate (zero-area) or duplicate triangles, 'leaflet' cell
+    data that are not integers."""
+    points = np.asarray(raw.points, dtype=np.float64)
+    tri = np.asarray(raw.triangles, dtype=np.int64).reshape(-1, 3)
+    _check_indices(points, tri, np.zeros((0, 2), dtype=np.int64), where)
+    diag = _check_finite(points, tri, np.unique(tri), where, "cells")
+    _check_cells(points, tri, where, diag)
+    if "leaflet" in raw.cell_data:
+        values = np.asarray(raw.cell_data["leaflet"]).reshape(len(tri), -1)[:, 0]
+        if not np.issubdtype(values.dtype, np.number) or not np.all(np.isfinite(values)) \
+                or not np.all(values == np.round(values)):
+            raise ValueError(f"{where}: 'leaflet' cell data must be integers")
+
+
+def _check_indices(points, tri, lines, where: str) -> None:
+    for name, c in (("cells", tri), ("line cells", lines)):
+        if len(c) and (c.min() < 0 or c.max() >= len(points)):
+            raise ValueError(f"{where}: {name} refer to nodes that are not in the file")
+
+
+def _check_finite(points, tri, used, where: str, cells: str) -> float:
+    """The diagonal of the cells' bounding box, once the ``used`` nodes are finite and the
+    cells have an extent."""
+    finite = np.isfinite(points[used]).all(axis=1)
+    if not finite.all():
+        raise ValueError(f"{where}: {int(np.sum(~finite))} node(s) have non-finite coordinates "
+                         f"(first: node {int(used[~finite][0])})")
+    diag = float(np.linalg.norm(np.ptp(points[np.unique(tri)], axis=0))) if len(tri) else 0.0
+    if not diag > 0:
+        raise ValueError(f"{where}: the {cells} have no extent")
+    return diag
 
 
 def _leaflet_values(raw: RawSurface, labels, where: str, ntri: int):

@@ -269,9 +269,20 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD, meshing: bool = False):
         if m["refine"]:
             raise InputError(f"{scene.source}: mesh.refine: refines valves only ({m['file']} has "
                              "no 'annulus' point data)")
+        from mvfem.meshes.imported import check_plain_surface
+
+        try:
+            check_plain_surface(raw, m["file"])
+        except ValueError as e:
+            raise InputError(f"{scene.source}: mesh.file: {e}") from None
         values = raw.cell_data.get("leaflet")
+        if m["labels"] and values is None:
+            raise InputError(f"{scene.source}: mesh.labels: {m['file']} has no 'leaflet' cell "
+                             "data for them to name")
         msh, tags = meshes.to_dolfinx(comm, raw, values)
-        names = {v: int(k) for k, v in (m["labels"] or {}).items()}
+        # a label names cells only where the file has them ('leaflet' cell data)
+        present = set() if values is None else {int(v) for v in np.unique(values)}
+        names = {v: int(k) for k, v in (m["labels"] or {}).items() if int(k) in present}
         return meshes.SurfaceMesh(mesh=msh, cell_tags=tags, facet_tags=None, names=names,
                                   info={"generator": "file", "file": m["file"]})
     raise InputError(f"{scene.source}: mesh.generator: {gen!r} is not available")

@@ -19,6 +19,7 @@ Independent references:
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -500,6 +501,77 @@ def test_bad_valve_files_through_mvfem_run(tmp_path, capsys, case, split):
     for word in BAD[case][1]:
         assert word in lines[0]
     assert "refine_surface" not in lines[0]
+    assert not (out / "summary.json").exists()
+
+
+def _plain_square(tmp_path, case: str):
+    """A 4 x 4 grid of 8 mm squares split in two (a membrane file without an annulus), the
+    left half 'leaflet' 1, the right half 2, with one ``case`` of damage."""
+    n = 5
+    xs = np.linspace(-16.0, 16.0, n)
+    X, Y = np.meshgrid(xs, xs)
+    pts = np.c_[X.ravel(), Y.ravel(), np.zeros(n * n)]
+    tri = np.array([t for i in range(n - 1) for j in range(n - 1)
+                    for t in ([i * n + j, i * n + j + 1, i * n + j + n + 1],
+                              [i * n + j, i * n + j + n + 1, i * n + j + n])])
+    leaflet = np.where(pts[tri].mean(axis=1)[:, 0] < 0, 1, 2)
+    data = {"leaflet": [leaflet]}
+    if case == "nan node":
+        pts[7, 2] = np.nan
+    elif case == "zero-area triangle":
+        pts = np.vstack([pts, [[40.0, 0, 0], [41.0, 0, 0], [42.0, 0, 0]]])
+        tri = np.vstack([tri, [[n * n, n * n + 1, n * n + 2]]])
+        data = {"leaflet": [np.r_[leaflet, 1]]}
+    elif case == "duplicate triangle":
+        tri = np.vstack([tri, tri[:1]])
+        data = {"leaflet": [np.r_[leaflet, 1]]}
+    elif case == "fractional leaflet":
+        data = {"leaflet": [leaflet + 0.5]}
+    elif case in ("no leaflet data", "a label without cells"):
+        data = {} if case == "no leaflet data" else {"leaflet": [np.ones_like(leaflet)]}
+    path = tmp_path / "plain.vtu"
+    meshio.write(path, meshio.Mesh(pts, [("triangle", tri)], cell_data=data))
+    return path
+
+
+PLAIN_BAD = {
+    "nan node": ["mesh.file", "plain.vtu", "non-finite coordinates"],
+    "zero-area triangle": ["mesh.file", "plain.vtu", "degenerate (zero-area)"],
+    "duplicate triangle": ["mesh.file", "plain.vtu", "duplicate triangle"],
+    "fractional leaflet": ["mesh.file", "plain.vtu", "must be integers"],
+    "no leaflet data": ["mesh.labels", "plain.vtu", "no 'leaflet' cell data"],
+    "a label without cells": ["region.label", "'right'", "not a label"],
+}
+
+
+@pytest.mark.parametrize("case", ["none", *PLAIN_BAD])
+def test_bad_membrane_files_through_mvfem_run(tmp_path, capsys, case):
+    """A membrane file without an annulus gets the valve files' checks that need no annulus:
+    non-finite nodes, zero-area and duplicate triangles, 'leaflet' data that are not
+    integers, and labels that name no cells are one line naming the scene, the key and the
+    file, exit code 2, no results. Until session 62 a zero-area triangle ran to exit code 0
+    with NaN areas and percentiles, a NaN node ended in a PETSc traceback, and a region whose
+    label named no cells in an AttributeError (or exit code 3). The undamaged file closes."""
+    path = _plain_square(tmp_path, case)
+    scene = tmp_path / "plain.toml"
+    scene.write_text(f'[mesh]\ngenerator = "file"\nfile = "{path.name}"\n'
+                     'labels = {1 = "left", 2 = "right"}\n'
+                     '[[region]]\nlabel = "left"\nlaw = "mny"\nparams = "MNY-mean"\n'
+                     '[[region]]\nlabel = "right"\nlaw = "mny"\nparams = "MNY-mean"\n'
+                     '[load]\npressure = "1 kPa"\n')
+    out = tmp_path / "out"
+    code = main(["run", str(scene), "--out", str(out)])
+    err = capsys.readouterr().err
+    if case == "none":
+        assert code == 0, err
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["regions"]["left"]["area_mm2"] == pytest.approx(512.0)
+        return
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert "plain.toml: " in lines[0]
+    for word in PLAIN_BAD[case]:
+        assert word in lines[0], lines[0]
     assert not (out / "summary.json").exists()
 
 
