@@ -151,9 +151,11 @@ BYTES_PER_CELL = 40e3
 #: at 0.5 and 0.1 mm (2944 and 72,835 cells) peaked at 151 and 216 MB, a valve at 1 and 0.25
 #: mm (4461 and 68,559 cells) at 211 and 241 MB (session 59)
 MESH_BYTES_PER_CELL = 1e3
-#: cells a generated valve of the built-in dimensions has at mesh.size = 1 mm (the demo's
-#: grading, free edge at half the size): 4385; at 2 and 0.5 mm it has 1144 and 16,957
+#: cells the demo's valve has at mesh.size = 1 mm (free edge at half the size): 4385; at 2
+#: and 0.5 mm it has 1144 and 16,957. Its dimensions are the generator's defaults but for
+#: :data:`VALVE_CELLS_DIMENSIONS`; other valves scale from it (:func:`_valve_scale`)
 VALVE_CELLS_AT_1MM = 4385.0
+VALVE_CELLS_DIMENSIONS = {"anterior_height": 23.0}
 #: cells per (area / size^2) of gmsh's unstructured triangles (a disk of radius 10 mm at
 #: size 2 mm: 206 cells, 2.62 x pi 100 / 4)
 CELLS_PER_AREA = 2.6
@@ -171,8 +173,50 @@ def expected_cells(m: dict, size: float) -> float | None:
     if gen in area:
         return CELLS_PER_AREA * area[gen]() / size**2
     if gen == "valve":
-        return VALVE_CELLS_AT_1MM / size**2 * 4.0 ** m["refine"]
+        return VALVE_CELLS_AT_1MM * _valve_scale(m) / size**2 * 4.0 ** m["refine"]
     return None
+
+
+def _loop_length(loop: np.ndarray) -> float:
+    """The length of the closed polyline ``loop`` (k, 3)."""
+    return float(np.linalg.norm(loop - np.roll(loop, 1, axis=0), axis=1).sum())
+
+
+def _valve_scale(m: dict) -> float:
+    """A generated valve's cells over the built-in valve's at one size, about: its annulus
+    perimeter times its leaflets' heights (each leaflet's by its share of the annulus), each
+    height with the band along the free edge where the size grows from half (twice the
+    cells an area there) added. A patient annulus in micrometres, not millimetres, was
+    meshed for minutes before the memory ran out; its estimate now refuses it."""
+    import inspect
+
+    from mvfem.meshes.io import read_points
+    from mvfem.meshes.valve import valve
+
+    d = {k: p.default for k, p in inspect.signature(valve).parameters.items()}
+    demo = {**d, **VALVE_CELLS_DIMENSIONS}
+
+    def perimeter(ap, cc, saddle, loop=None):
+        if loop is None:
+            t = np.linspace(0.0, 2 * np.pi, 720, endpoint=False)
+            loop = np.column_stack([ap / 2 * np.cos(t), cc / 2 * np.sin(t),
+                                    saddle / 2 * np.cos(2 * t)])
+        return _loop_length(loop)
+
+    def height(ant, post):
+        share, band = d["anterior_share"], d["refine_distance"]
+        return share * (ant + min(ant, band)) + (1 - share) * (post + min(post, band))
+
+    def given(key):
+        return d[key] if m.get(key) is None else m[key]
+
+    base = (perimeter(demo["ap_diameter"], demo["commissural_diameter"], demo["saddle_height"])
+            * height(demo["anterior_height"], demo["posterior_height"]))
+    loop = read_points(m["annulus"]) if m.get("annulus") is not None else None
+    this = (perimeter(given("ap_diameter"), given("commissural_diameter"),
+                      given("saddle_height"), loop)
+            * height(given("anterior_height"), given("posterior_height")))
+    return this / base
 
 
 def _host_memory(comm) -> float:
@@ -227,6 +271,11 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD, meshing: bool = False):
         what = (f"mesh.refinements = {m['refinements']}" if gen == "octasphere" else
                 f"mesh.size = {size:g} mm" + (f" with mesh.refine = {m['refine']}"
                                               if gen == "valve" and m["refine"] else ""))
+        if gen == "valve" and m["annulus"] is not None:  # (a loop in other units shows here)
+            from mvfem.meshes.io import read_points
+
+            what += (f" on the annulus of {m['annulus']}, "
+                     f"{_loop_length(read_points(m['annulus'])):.3g} mm around,")
         check_cells(cells, what, scene.source, comm, meshing)
     if gen == "disk":
         return meshes.disk(comm, radius=m["radius"], size=size)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import re
 import time
@@ -16,6 +17,8 @@ from mvfem.cli import main
 from mvfem.errors import InputError
 from mvfem.run import solve
 
+#: a patient's annulus and papillary tips (../shared beside the repository)
+PATIENT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kaiser_normal1"
 DISK = {"title": "coarse disk", "mesh": {"generator": "disk", "radius": 10.0, "size": 1.25},
         "region": [{"law": "mny", "params": "MNY-mean"}],
         "output": {"probes": [{"name": "centre", "point": [0.0, 0.0, 0.0]},
@@ -1625,10 +1628,19 @@ def test_refine_refused(changes, what):
     ({"generator": "octasphere", "radius": 10.0, "refinements": 3}, 0.0),
     ({"generator": "valve", "size": 3.0}, 0.25),
     ({"generator": "valve", "size": 2.0, "refine": 1}, 0.25),
+    ({"generator": "valve", "size": 3.0, "ap_diameter": 42.0, "commissural_diameter": 55.5},
+     0.25),
+    ({"generator": "valve", "size": 2.0, "anterior_height": 12.0, "posterior_height": 8.0},
+     0.25),
+    ({"generator": "valve", "size": 3.0, "annulus": str(PATIENT / "normal1_annulus_loop_mm.csv"),
+      "papillary": str(PATIENT / "normal1_papillary_tips_mm.csv")}, 0.25),
 ])
 def test_expected_cells_are_the_meshes_cells(mesh, slack):
     """The count a mesh is refused by (``model.expected_cells``, before it is made) against
-    the cells of the mesh made: gmsh's shapes within a quarter, the octasphere's exact."""
+    the cells of the mesh made: gmsh's shapes within a quarter, the octasphere's exact. A
+    valve's count scales with its annulus's perimeter and its leaflets' heights (a dilated
+    annulus, short leaflets, a patient's annulus; until session 62 every valve was counted as
+    the built-in one, and a patient annulus in micrometres was meshed for minutes)."""
     from mvfem.model import build_mesh, expected_cells
     from mvfem.scene import load_scene
 
@@ -1649,6 +1661,7 @@ def _refusing(monkeypatch, memory: float):
 
     monkeypatch.setattr(model_mod, "_host_memory", lambda comm: memory)
 
+    @functools.wraps(valve_mod.valve)   # (its defaults are the estimate's built-in valve)
     def never(*a, **kw):
         raise AssertionError("meshed a mesh the memory would not hold")
     return lambda: monkeypatch.setattr(valve_mod, "valve", never)
@@ -1677,13 +1690,50 @@ def test_a_mesh_the_memory_would_not_hold_is_refused_before_it_is_made(tmp_path,
         build_mesh(demo.with_changes({"mesh.size": 1.0}), MPI.COMM_SELF, meshing=True)
     monkeypatch.undo()
     capsys.readouterr()  # (the 2 mm valve's line)
-    for args, key, out in (
-            (["run", str(demo.source), "--set", "mesh.size=0.001"], "mesh.size", tmp_path / "r"),
-            (["mesh", "valve", "--size", "0.001"], "--size", tmp_path / "m.vtu")):
+    # (the generator's own valve has a 24 mm anterior leaflet, the demo's 23 mm)
+    for args, key, out, cells in (
+            (["run", str(demo.source), "--set", "mesh.size=0.001"], "mesh.size", tmp_path / "r",
+             4400),
+            (["mesh", "valve", "--size", "0.001"], "--size", tmp_path / "m.vtu", 4500)):
         assert main(args + ["--out", str(out)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and f"{key} = 0.001 mm would make about 4400 million cells" in err[0]
+        assert len(err) == 1 and f"{key} = 0.001 mm would make about {cells} million" in err[0]
         assert not out.exists()
+
+
+def test_a_patient_annulus_in_micrometres_is_refused_naming_its_length(tmp_path, monkeypatch,
+                                                                       capsys):
+    """The patient's annulus and tips written in micrometres (1000 x their millimetres): its
+    valve at 2 mm would have about 1000 x the cells the millimetre one has (the annulus 1000
+    x as long, the leaflets' heights as given), which is refused before gmsh runs, naming the
+    file and its length (120 mm x 1000); until session 62 it was counted as the built-in
+    valve's 1100 cells and meshed for minutes."""
+    from mvfem.model import expected_cells
+    from mvfem.scene import load_scene
+
+    paths = {}
+    for key, name in (("annulus", "normal1_annulus_loop_mm.csv"),
+                      ("papillary", "normal1_papillary_tips_mm.csv")):
+        pts = np.loadtxt(PATIENT / name, delimiter=",", skiprows=1)
+        paths[key] = tmp_path / f"{key}_um.csv"
+        np.savetxt(paths[key], 1000 * pts, delimiter=",")
+    scene = tmp_path / "patient_um.toml"
+    scene.write_text(f'[mesh]\ngenerator = "valve"\nsize = 2.0\nannulus = "{paths["annulus"]}"\n'
+                     f'papillary = "{paths["papillary"]}"\n'
+                     '[[region]]\nlabel = "anterior"\nlaw = "mny"\nparams = "MNY-mean"\n'
+                     '[[region]]\nlabel = "posterior"\nlaw = "mny"\nparams = "MNY-mean"\n'
+                     'leaflet = "posterior"\n')
+    mm = load_scene({"mesh": {"generator": "valve", "size": 2.0,
+                              "annulus": str(PATIENT / "normal1_annulus_loop_mm.csv")},
+                     "region": [{"law": "svk", "params": "SVK"}]})
+    um = load_scene(scene)
+    assert expected_cells(um["mesh"], 2.0) > 500 * expected_cells(mm["mesh"], 2.0)
+    _refusing(monkeypatch, 24 * 2**30)()
+    out = tmp_path / "out"
+    assert main(["run", str(scene), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "annulus_um.csv, 1.2e+05 mm around, would make about" in err[0]
+    assert not out.exists()
 
 
 def test_a_valve_file_refined_beyond_the_memory_is_refused(tmp_path, monkeypatch):
