@@ -58,6 +58,7 @@ import numpy as np
 
 from mvfem.errors import InputError
 from mvfem.scene import read_toml
+from mvfem.units import beyond_float
 
 __all__ = ["COLUMNS", "DIASTOLIC_PRESSURE", "PATH_COLUMNS", "PATH_KEYS", "compare",
            "load_repair", "parse_paths", "parse_weights"]
@@ -158,7 +159,7 @@ def _parse_values(text, option: str, convert, what: str) -> list:
             v = convert(t)
         except (TypeError, ValueError):
             v = None
-        if v is None or not v > 0 or not math.isfinite(v):
+        if v is None or not v > 0 or beyond_float(v) or not math.isfinite(v):
             raise InputError(f"{option}: {text!r}: expected {what} separated by commas")
         if v not in out:
             out.append(v)

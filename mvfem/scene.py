@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from mvfem.errors import InputError
-from mvfem.units import AREA, LENGTH, PRESSURE, STIFFNESS, parse_quantity
+from mvfem.units import AREA, LENGTH, PRESSURE, STIFFNESS, beyond_float, parse_quantity
 
 __all__ = ["Scene", "load_scene", "parse_set_option", "read_toml", "GENERATORS", "LAW_NAMES"]
 
@@ -37,6 +37,8 @@ class _Bad(Exception):
 def _number(path, v, minimum=None, positive=False, integer=False):
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise _Bad(path, f"expected a number, got {v!r}")
+    if beyond_float(v):
+        raise _Bad(path, beyond_float(v))
     if integer and (not float(v).is_integer()):
         raise _Bad(path, f"expected an integer, got {v!r}")
     if not math.isfinite(v):
@@ -776,6 +778,8 @@ def _assign(raw: dict, dotted: str, value, source: str) -> None:
             except (ValueError, IndexError):
                 raise InputError(f"{source}: --set {dotted}: no item {part!r}") from None
             continue
+        if not isinstance(node, dict):  # (a path through a value: a string, a number)
+            raise InputError(f"{source}: --set {dotted}: {'.'.join(parts[:i])} is not a table")
         if part == "region" and isinstance(node.get(part), dict):
             node[part] = [node[part]]
         if part not in node:

@@ -60,6 +60,7 @@ from typing import Any
 from mvfem.errors import InputError
 from mvfem.relaunch import RETRIES, WITHIN_S, without_mpi_job
 from mvfem.scene import read_toml
+from mvfem.units import beyond_float
 
 __all__ = ["Study", "Case", "RunSpec", "load_study", "run_study", "one_mesh_runs",
            "mesh_line", "collect_results",
@@ -286,7 +287,8 @@ def load_study(study: str | Path | dict, base_dir: str | Path | None = None) -> 
         raise bad("processes", f"expected a positive integer, got {processes!r}")
     timeout = raw.get("timeout")
     if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, (int, float))
-                                or not math.isfinite(timeout) or timeout <= 0):
+                                or beyond_float(timeout) or not math.isfinite(timeout)
+                                or timeout <= 0):
         raise bad("timeout", f"expected a positive number of seconds, got {timeout!r}")
     flags = {}
     for key, default in (("include_stopped", False), ("biaxial", True)):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 
 __all__ = ["PRESSURE", "LENGTH", "AREA", "STIFFNESS", "parse_quantity"]
 
@@ -31,6 +32,8 @@ def parse_quantity(value, units: dict[str, float], default_unit: str) -> float:
     if isinstance(value, bool):
         raise ValueError(f"expected a number or a string with a unit, got {value!r}")
     if isinstance(value, (int, float)):
+        if beyond_float(value):
+            raise ValueError(beyond_float(value))
         x = float(value)
     elif isinstance(value, str):
         m = _NUMBER.match(value)
@@ -47,6 +50,14 @@ def parse_quantity(value, units: dict[str, float], default_unit: str) -> float:
     if not math.isfinite(x):
         raise ValueError(f"{value!r} is not finite")
     return x
+
+
+def beyond_float(value) -> str:
+    """What is wrong with an integer too large for a float (TOML and Python integers have
+    any number of digits; ``float()`` of one raises OverflowError), or ''."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > sys.float_info.max:
+        return f"an integer of {len(str(abs(value)))} digits is beyond the range of a float"
+    return ""
 
 
 def _names(units: dict[str, float]) -> list[str]:

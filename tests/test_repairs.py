@@ -424,6 +424,7 @@ def test_repair_compare_names_the_repair_file(tmp_path):
 
 @pytest.mark.parametrize("option, value", [("--paths", "0"), ("--paths", "10,x"),
                                            ("--paths", "2.5"), ("--paths", ","),
+                                           ("--paths", "1" + "0" * 400),
                                            ("--weights", "0"), ("--weights", "-0.1"),
                                            ("--weights", "nan"), ("--weights", "0.1,y")])
 def test_bad_paths_and_weights_are_input_errors(option, value):

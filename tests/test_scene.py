@@ -55,6 +55,14 @@ def test_pressure_units(text, value):
     ({"output.probes": [{"name": "a", "point": [0, 0]}]}, ["output.probes[0].point"]),
     ({"mesh.generator": "file", "mesh.file": "no/such.vtu"}, ["mesh.file", "no such file"]),
     ({"colour": 1}, ["colour", "unknown key"]),
+    # (session 62: TOML integers have any number of digits; float() of these overflowed)
+    ({"mesh.radius": 10**400}, ["mesh.radius", "401 digits", "beyond the range of a float"]),
+    ({"solver.max_it": -10**309}, ["solver.max_it", "310 digits"]),
+    ({"mesh.size": 10**400}, ["mesh.size", "401 digits"]),
+    # (session 62: a path through a value, not a table, was a TypeError)
+    ({"region.0.law.a.b": 1}, ["--set region.0.law.a.b", "region.0.law is not a table"]),
+    ({"mesh.radius.x.y": 1}, ["--set mesh.radius.x.y", "mesh.radius is not a table"]),
+    ({"region.0.params.E.x": 1}, ["region.0.params is not a table"]),
 ])
 def test_bad_values(change, words):
     with pytest.raises(InputError) as e:

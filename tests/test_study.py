@@ -344,6 +344,7 @@ def test_sets_per_leaflet_on_the_demo_valve():
     ('sets = []\n[[case]]\nscene = "disk.toml"\n', ["sets", "expected a list"]),
     ('processes = 0\n[[case]]\nscene = "disk.toml"\n', ["processes", "positive integer"]),
     ('timeout = -1\n[[case]]\nscene = "disk.toml"\n', ["timeout", "positive number"]),
+    (f'timeout = 1{"0" * 400}\n[[case]]\nscene = "disk.toml"\n', ["timeout", "positive number"]),
     ('biaxial = "yes"\n[[case]]\nscene = "disk.toml"\n', ["biaxial", "true or false"]),
     ('sets = ["SVK"]\n', ["case", "at least one"]),
     ('[[case]]\nscene = "nowhere.toml"\n', ["case[0].scene", "no such scene file"]),
