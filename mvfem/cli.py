@@ -322,7 +322,10 @@ def _cmd_mesh(args) -> int:
     targets = [out, Path(str(out) + ".json")]
     if out.suffix.lower() == ".xdmf":
         targets.append(out.with_suffix(".h5"))
-    taken = [t for t in targets if t.exists() or t.is_symlink()]
+    try:
+        taken = [t for t in targets if t.exists() or t.is_symlink()]
+    except OSError as e:   # (a name too long to look up)
+        raise InputError(f"--out {out}: cannot be written ({e.strerror or e})") from None
     if taken and not args.force:
         what = "exists" if taken[0] == out else f"would replace {taken[0]}, which exists"
         raise InputError(f"--out {out}: {what}; choose another name or pass --force")

@@ -32,9 +32,9 @@ def prepare_out(out: str | os.PathLike, option: str = "--out") -> Path:
     file, no permission, a read-only disk): :class:`InputError` either way.
     """
     path = Path(out)
-    if path.exists() and not path.is_dir():
-        raise InputError(f"{option} {path}: exists and is not a directory")
     try:
+        if path.exists() and not path.is_dir():
+            raise InputError(f"{option} {path}: exists and is not a directory")
         if path.is_dir() and any(path.iterdir()) and not (path / MARKER).exists():
             raise InputError(f"{option} {path}: directory exists, is not empty and was not "
                              "written by mvfem; choose a new directory")

@@ -369,10 +369,7 @@ def _check_mesh(mesh: dict, base_dir: Path) -> None:
     if mesh["generator"] == "file":
         if not mesh["file"]:
             raise _Bad("mesh.file", "required when generator = \"file\"")
-        p = Path(mesh["file"])
-        p = p if p.is_absolute() else base_dir / p
-        if not p.is_file():
-            raise _Bad("mesh.file", f"no such file: {p}")
+        p = _existing_file("mesh.file", mesh["file"], base_dir)
         mesh["file"] = str(p)
     labels = mesh["labels"]
     if labels is not None:
@@ -581,10 +578,7 @@ def _check_targets(data: dict, base_dir: Path) -> None:
         t = data[section]["target"]
         if t is None:
             continue
-        p = Path(t)
-        p = p if p.is_absolute() else base_dir / p
-        if not p.is_file():
-            raise _Bad(f"{section}.target", f"no such file: {p}")
+        p = _existing_file(f"{section}.target", t, base_dir)
         try:
             pts = read_points(p)
         except ValueError as e:
@@ -609,10 +603,7 @@ def _check_valve_files(mesh: dict, base_dir: Path) -> None:
             continue
         if mesh["generator"] != "valve":
             raise _Bad(f"mesh.{key}", "only for generator = \"valve\"")
-        p = Path(mesh[key])
-        p = p if p.is_absolute() else base_dir / p
-        if not p.is_file():
-            raise _Bad(f"mesh.{key}", f"no such file: {p}")
+        p = _existing_file(f"mesh.{key}", mesh[key], base_dir)
         try:
             read_points(p)
         except ValueError as e:
@@ -652,10 +643,7 @@ def _check_reference(ref: dict, base_dir: Path, mesh_labels: dict | None) -> Non
         return
     from mvfem.distance import read_reference
 
-    p = Path(ref["file"])
-    p = p if p.is_absolute() else base_dir / p
-    if not p.is_file():
-        raise _Bad("reference.file", f"no such file: {p}")
+    p = _existing_file("reference.file", ref["file"], base_dir)
     try:
         read_reference(p, labels or mesh_labels)
     except ValueError as e:
@@ -805,6 +793,29 @@ def _make(raw: dict, source: str, base_dir: Path) -> Scene:
     return Scene(data=data, raw=raw, source=source, base_dir=base_dir)
 
 
+def _file_problem(p: Path) -> str:
+    """'' for a regular file, else what it is instead (a directory, a device or a FIFO, no
+    such file, a name too long to look up)."""
+    try:
+        if p.is_file():
+            return ""
+        if p.is_dir():
+            return "a directory, not a file"
+        return "not a regular file" if p.exists() else "no such file"
+    except OSError as e:   # (a name too long; exists() raises that one)
+        return f"cannot be looked up ({e.strerror or e})"
+
+
+def _existing_file(key: str, value, base_dir: Path) -> Path:
+    """The file a scene key names (relative to the scene's directory), a regular file."""
+    p = Path(value)
+    p = p if p.is_absolute() else base_dir / p
+    problem = _file_problem(p)
+    if problem:
+        raise _Bad(key, f"{problem}: {p}")
+    return p
+
+
 def load_scene(scene: str | Path | dict | Scene) -> Scene:
     """Read and validate a scene from a TOML file, a dict, or return a Scene as it is."""
     if isinstance(scene, Scene):
@@ -818,10 +829,11 @@ def load_scene(scene: str | Path | dict | Scene) -> Scene:
 def read_toml(path: Path, what: str, missing: str | None = None) -> dict:
     """The table of a TOML file; one-line InputError when it is missing (``missing``, else
     "PATH: no such WHAT file"), not TOML or not text (scenes, studies, repair files)."""
-    if path.is_dir():
-        raise InputError(f"{path}: a directory, not a {what} file")
-    if not path.is_file():
+    problem = _file_problem(path)
+    if problem == "no such file":
         raise InputError(missing or f"{path}: no such {what} file")
+    if problem:
+        raise InputError(f"{path}: {problem.replace('a file', f'a {what} file')}")
     try:
         return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+from pathlib import Path
 
 import meshio
 import numpy as np
@@ -159,6 +160,18 @@ def test_mesh_command_never_replaces_a_file_it_would_write_beside_the_mesh(tmp_p
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "d.vtu.json" in err[0], err
     assert not (tmp_path / "d.vtu").exists()
+
+
+def test_an_output_name_too_long_is_one_line(tmp_path, capsys):
+    """A file name longer than the file system takes (255 bytes) after --out is an input
+    error of ``mvfem run`` and ``mvfem mesh`` (it was an OSError traceback)."""
+    disk = Path(__file__).parents[1] / "scripts" / "scenes" / "disk_mny.toml"
+    long = tmp_path / ("a" * 300)
+    for args in (["run", str(disk)], ["mesh", "disk"]):
+        out = str(long) + (".vtu" if args[0] == "mesh" else "")
+        assert main(args + ["--out", out]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "File name too long" in err[0] and "--out" in err[0], err
 
 
 @pytest.mark.mpi

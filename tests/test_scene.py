@@ -54,6 +54,11 @@ def test_pressure_units(text, value):
     ({"fibres.direction": "spiral"}, ["fibres.direction", "circumferential"]),
     ({"output.probes": [{"name": "a", "point": [0, 0]}]}, ["output.probes[0].point"]),
     ({"mesh.generator": "file", "mesh.file": "no/such.vtu"}, ["mesh.file", "no such file"]),
+    # (session 62: these were "no such file", and a name too long an OSError traceback)
+    ({"mesh.generator": "file", "mesh.file": "/"}, ["mesh.file", "a directory, not a file"]),
+    ({"mesh.generator": "file", "mesh.file": "/dev/null"}, ["mesh.file", "not a regular file"]),
+    ({"mesh.generator": "file", "mesh.file": "a" * 300 + ".vtu"},
+     ["mesh.file", "cannot be looked up (File name too long)"]),
     ({"colour": 1}, ["colour", "unknown key"]),
     # (session 62: TOML integers have any number of digits; float() of these overflowed)
     ({"mesh.radius": 10**400}, ["mesh.radius", "401 digits", "beyond the range of a float"]),
@@ -80,6 +85,10 @@ def test_bad_files(tmp_path):
     bad.write_text("[mesh\ngenerator = 'disk'\n")
     with pytest.raises(InputError, match=r"bad.toml: not valid TOML"):
         load_scene(bad)
+    with pytest.raises(InputError, match=r"^/dev/null: not a regular file$"):
+        load_scene("/dev/null")
+    with pytest.raises(InputError, match=r"a{300}\.toml: cannot be looked up \(File name too"):
+        load_scene(tmp_path / ("a" * 300 + ".toml"))
     nomesh = tmp_path / "nomesh.toml"
     nomesh.write_text("[[region]]\nlaw = 'mny'\nparams = 'CP01'\n")
     with pytest.raises(InputError, match=r"nomesh.toml: mesh: required"):
