@@ -204,6 +204,26 @@ class SolveInfo:
     solve_s: float = 0.0
 
 
+def _set_up_on_a_tiny_matrix(comm, prefix: str) -> None:
+    """Set up a linear solver of the options under ``prefix`` on the identity of one row a
+    rank (collective): its preconditioner and factorisation package are made, and refused
+    if PETSc has no such thing."""
+    n = 1
+    A = PETSc.Mat().createAIJ(((n, None), (n, None)), nnz=(1, 0), comm=comm)
+    ksp = PETSc.KSP().create(comm)
+    try:
+        start, _ = A.getOwnershipRange()
+        A.setValue(start, start, 1.0)
+        A.assemble()
+        ksp.setOptionsPrefix(prefix)
+        ksp.setOperators(A)
+        ksp.setFromOptions()
+        ksp.setUp()
+    finally:
+        ksp.destroy()
+        A.destroy()
+
+
 class SNESProblem:
     """Newton's method for ``F(u; v) = 0`` with Dirichlet conditions, via PETSc SNES.
 
@@ -252,6 +272,12 @@ class SNESProblem:
             self.snes.setFromOptions()
             self.snes.getKSP().setFromOptions()
             self.snes.getKSP().getPC().setFromOptions()
+            # values the options database takes but the objects check only when used (a
+            # negative snes_max_it at the first solve, an unknown factorisation package at the
+            # first factorisation: tracebacks after the forms' compilation and a first step)
+            self.snes.setTolerances(*self.snes.getTolerances())
+            self.snes.getKSP().setTolerances(*self.snes.getKSP().getTolerances())
+            _set_up_on_a_tiny_matrix(self.comm, prefix)
         except PETSc.Error as e:
             raise ValueError(f"PETSc rejected the options {options or {}} (error code "
                              f"{e.ierr})") from None
