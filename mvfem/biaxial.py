@@ -166,6 +166,10 @@ class Curve:
         return np.isfinite(self.sigma_parallel) & np.isfinite(self.sigma_perpendicular)
 
 
+#: strain values a biaxial curve may have (the CSV holds one row per value, set and mode)
+MAX_POINTS = 100_000
+
+
 def strain_grid(strain_min: float, strain_max: float, points: int) -> np.ndarray:
     """Imposed strains; an :class:`InputError` for a range that is not one."""
     if not (np.isfinite(strain_min) and np.isfinite(strain_max)):
@@ -178,6 +182,8 @@ def strain_grid(strain_min: float, strain_max: float, points: int) -> np.ndarray
                          f"{-1 / OFF_BIAXIAL_RATIO:.4f}")
     if points < 2:
         raise InputError(f"--points: need at least 2 points, got {points}")
+    if points > MAX_POINTS:   # (1e11 asked for 745 GiB)
+        raise InputError(f"--points: at most {MAX_POINTS:,} points a curve, got {points:,}")
     return np.linspace(strain_min, strain_max, points)
 
 

@@ -101,6 +101,7 @@ def test_valve_line_puts_the_trace_length_beside_the_stepped_one():
     (["biaxial", "--strain=-1.2:0.5"], ["--strain", "stretch"]),
     (["biaxial", "--points", "1"], ["--points"]),
     (["biaxial", "--points", "many"], ["--points", "invalid int"]),
+    (["biaxial", "--points", "100000000000"], ["--points", "at most 100,000"]),  # (745 GiB)
     (["biaxial", "--leaflet", "middle"], ["--leaflet", "middle"]),
     (["nonsense"], ["nonsense"]),
 ])

@@ -50,6 +50,8 @@ def test_pressure_units(text, value):
      ["region[0].fibre_compression", "no fibre term"]),
     ({"solver.degree": 0}, ["solver.degree", "at least 1"]),
     ({"solver.degree": 1.5}, ["solver.degree", "integer"]),
+    ({"solver.degree": 50}, ["solver.degree", "at most 4", "compile for minutes"]),
+    ({"solver.quadrature_degree": 200}, ["solver.quadrature_degree", "at most 20"]),
     ({"fibres.direction": [0, 0, 0]}, ["fibres.direction", "zero"]),
     ({"fibres.direction": "spiral"}, ["fibres.direction", "circumferential"]),
     ({"output.probes": [{"name": "a", "point": [0, 0]}]}, ["output.probes[0].point"]),
