@@ -368,7 +368,18 @@ def _check_region(path: str, region: dict) -> dict:
     return r
 
 
+#: the longest length a generated mesh may have (mm: a kilometre). gmsh aborts the process
+#: on a disk of radius 1e9 mm (exit code 134, a C++ backtrace) and meshes a tube of 1e10
+#: mm without end (session 62); a length this long is a unit mistaken
+MAX_LENGTH_MM = 1e6
+
+
 def _check_mesh(mesh: dict, base_dir: Path) -> None:
+    for key in ("radius", "side", "length", "size", *_VALVE_KEYS):
+        v = mesh.get(key)
+        if isinstance(v, float) and abs(v) > MAX_LENGTH_MM:
+            raise _Bad(f"mesh.{key}", f"{v:g} mm is longer than {MAX_LENGTH_MM:g} mm (a "
+                       "kilometre; lengths are in mm unless a unit is given)")
     if mesh["refine"] and mesh["generator"] not in ("valve", "file"):
         raise _Bad("mesh.refine", "refines valves only (generator = \"valve\", or a valve file)")
     if mesh["refine"] > 4:

@@ -51,6 +51,9 @@ def test_pressure_units(text, value):
     ({"solver.degree": 0}, ["solver.degree", "at least 1"]),
     ({"solver.degree": 1.5}, ["solver.degree", "integer"]),
     ({"solver.degree": 50}, ["solver.degree", "at most 4", "compile for minutes"]),
+    # (session 62: gmsh aborted the process, exit code 134, on a disk of radius 1e9 mm)
+    ({"mesh.radius": 1e10}, ["mesh.radius", "1e+10 mm is longer than 1e+06 mm"]),
+    ({"mesh.radius": "2000 m"}, ["mesh.radius", "longer than"]),
     ({"solver.quadrature_degree": 200}, ["solver.quadrature_degree", "at most 20"]),
     ({"fibres.direction": [0, 0, 0]}, ["fibres.direction", "zero"]),
     ({"fibres.direction": "spiral"}, ["fibres.direction", "circumferential"]),
