@@ -149,8 +149,8 @@ def _cmd_biaxial(args) -> int:
     _say(f"biaxial: {res['rows']} states, {len(res['curves'])} curves in "
          f"{time.perf_counter() - t0:.1f} s")
     if res["overflow"]:
-        _say(f"  {res['overflow']} stresses exceed float64 (exponential laws in strong "
-             "compression) and are left empty in the CSV")
+        _say(f"  {res['overflow']} stresses exceed float64 (exponential laws at large "
+             "strains) and are left empty in the CSV")
     for f in res["files"]:
         _say(f"  wrote {f}")
     return 0

@@ -8,6 +8,7 @@ the solver adds it as a lumped diagonal (see :func:`lumped_mass`).
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -415,7 +416,11 @@ def _valve(scene: Scene, comm, size: float):
     try:
         return valve(comm, size=size, refine=m["refine"], **kw)
     except ValueError as e:
-        raise InputError(f"{scene.source}: mesh: {e}") from None
+        # the generator's advice in the scene's keys (its tilt and smoothing are not scene keys)
+        said = re.sub(r"the (\w+) leaflet folds (.*): lower its height or tilt, or raise "
+                      r"ruling_smoothing",
+                      r"the \1 leaflet folds \2: lower mesh.\1_height", str(e))
+        raise InputError(f"{scene.source}: mesh: {said}") from None
 
 
 def _centre(msh, given) -> np.ndarray:

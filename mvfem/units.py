@@ -61,5 +61,8 @@ def beyond_float(value) -> str:
 
 
 def _names(units: dict[str, float]) -> list[str]:
+    """The units to name in a message: a pressure's without its N/mm2 spellings; a
+    stiffness's (every one a ratio) all, as Pa/mm, kPa/mm and MPa/mm."""
     pretty = {"pa": "Pa", "kpa": "kPa", "mpa": "MPa", "gpa": "GPa", "mmhg": "mmHg", "bar": "bar"}
-    return [pretty.get(k, k) for k in units if "/" not in k]
+    plain = [k for k in units if "/" not in k] or list(units)
+    return ["/".join(pretty.get(p, p) for p in k.split("/")) for k in plain]

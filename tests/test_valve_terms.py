@@ -443,6 +443,8 @@ _VALVE = {"mesh": {"generator": "valve"},
     ({"chordae.basal.stiffness": 1}, "chordae.basal.stiffness"),
     ({"contact.thickness": "-1 mm"}, "contact.thickness"),
     ({"contact.stiffness": "3 kPa"}, "contact.stiffness"),
+    # (session 62: the units were listed as "(units: )")
+    ({"contact.stiffness": "1 N"}, "(units: Pa/mm, kPa/mm, MPa/mm)"),
     ({"bending.modulus": -5}, "bending.modulus"),
     ({"solver.coarse_start": 0}, "solver.coarse_start"),
     ({"solver.coarse_start": []}, "solver.coarse_start"),
@@ -458,6 +460,22 @@ def test_valve_scene_keys_are_checked(change, key):
     scene = mvfem.load_scene(_VALVE)
     with pytest.raises(InputError, match=key.replace(".", r"\.")):
         scene.with_changes(change)
+
+
+def test_a_folding_leaflet_names_the_scene_key_to_change():
+    """An annulus far too wide for its leaflets folds them; the refusal advises the scene's
+    own key (it named the generator's ``ruling_smoothing``, not a scene key)."""
+    from mpi4py import MPI
+
+    import mvfem
+    from mvfem.errors import InputError
+    from mvfem.model import build_mesh
+
+    scene = mvfem.load_scene(_VALVE).with_changes({"mesh.size": 6.0, "mesh.ap_diameter": 1000})
+    with pytest.raises(InputError) as e:
+        build_mesh(scene, MPI.COMM_SELF)
+    assert "leaflet folds" in str(e.value) and "lower mesh.anterior_height" in str(e.value)
+    assert "ruling_smoothing" not in str(e.value)
 
 
 def test_valve_scene_defaults():
