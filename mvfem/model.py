@@ -554,17 +554,43 @@ def _point(x) -> str:
     return "(" + ", ".join(f"{float(c):.4g}" for c in x) + ")"
 
 
-def _region_cells(surface, label: str | None, n_regions: int, source: str):
-    """(tag value, measure subdomain) for a region label."""
-    if n_regions == 1 and label is None:
-        return None
+def _cell_labels(surface, comm) -> dict[str, int]:
+    """The labels of the surface's cells that some cell has (name -> tag value; its edge
+    tags, e.g. a valve's annulus, and labels of no cell left out)."""
     names = getattr(surface, "names", {}) or {}
-    if label in names:
-        return int(names[label])
-    if n_regions == 1:
+    tags = surface.cell_tags
+    mine = set() if tags is None else {int(v) for v in np.unique(tags.values)}
+    present = set().union(*comm.allgather(mine))
+    return {k: int(v) for k, v in names.items() if int(v) in present}
+
+
+def _region_cells(labels: dict[str, int], label: str | None, n_regions: int, where: str,
+                  source: str):
+    """The tag value of a region's cells (None: every cell), ``labels`` those of
+    :func:`_cell_labels`. A label the cells do not have is refused where the mesh has
+    labels; on an unlabelled mesh a single region's label only names it."""
+    if label is None:
         return None
-    raise InputError(f"{source}: region.label: {label!r} is not a label of the mesh "
-                     f"(labels: {', '.join(map(str, names)) or 'none'})")
+    if label in labels:
+        return labels[label]
+    if n_regions == 1 and not labels:
+        return None
+    raise InputError(f"{source}: {where}.label: {label!r} is not a label of the mesh's cells "
+                     f"(labels: {', '.join(map(str, labels)) or 'none'})")
+
+
+def _check_covered(labels: dict[str, int], tags, regions, comm, source: str) -> None:
+    """Every labelled cell is in a region: cells of no region had no material (a valve file
+    with one region for its anterior leaflet closed with a posterior leaflet of nothing)."""
+    covered = {r.tag for r in regions}
+    if None in covered or tags is None:
+        return
+    for name, value in labels.items():
+        if value not in covered:
+            n = comm.allreduce(int(np.sum(tags.values == value)), op=MPI.SUM)
+            raise InputError(f"{source}: region: the mesh's {n} cells labelled {name!r} are in "
+                             f"no [[region]]; add one with label = \"{name}\" (or give a "
+                             "single region no label: it covers every cell)")
 
 
 def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
@@ -595,8 +621,10 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
     # the Fung laws' exponent beyond which they continue linearly (C1): MAX_EXPONENT, lowered
     # at the start of a grid-sequenced solve (mvfem/sequence.py)
     cap = fem.Constant(msh, MAX_EXPONENT)
-    for r in scene["region"]:
-        tag = _region_cells(surface, r["label"], len(scene["region"]), scene.source)
+    labels = _cell_labels(surface, comm)
+    for i, r in enumerate(scene["region"]):
+        tag = _region_cells(labels, r["label"], len(scene["region"]), f"region[{i}]",
+                            scene.source)
         dx = (ufl.Measure("dx", domain=msh, subdomain_data=tags, subdomain_id=tag, metadata=meta)
               if tag is not None else ufl.Measure("dx", domain=msh, metadata=meta))
         consts = {k: fem.Constant(msh, float(val)) for k, val in r["params"].items()}
@@ -608,6 +636,7 @@ def build_model(scene: Scene, comm=MPI.COMM_WORLD) -> Model:
         regions.append(Region(r["label"] or "membrane", tag, r["law"], r.get("set", "custom"),
                               consts, h0, W, dx, tension_only))
         energy = energy + h0 * W * dx
+    _check_covered(labels, tags, regions, comm, scene.source)
 
     E_b = scene["bending"]["modulus"]
     if E_b is None:
