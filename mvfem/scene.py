@@ -675,17 +675,27 @@ def _check_reference(ref: dict, base_dir: Path, mesh_labels: dict | None) -> Non
     ref["file"] = str(p)
 
 
+def _unit(path: str, v: list[float]) -> list[float]:
+    """``v`` made a unit vector (scaled by its largest component first, so that neither
+    [1e200, 1e200, 0] overflows nor [1e-200, 0, 0] underflows, which gave NaN directions)."""
+    big = max(abs(c) for c in v)
+    if big == 0:
+        raise _Bad(path, "must not be the zero vector")
+    w = [c / big for c in v]
+    n = math.sqrt(sum(c * c for c in w))
+    return [c / n for c in w]
+
+
 def _check_fibres(fib: dict) -> None:
     d = fib["direction"]
     if isinstance(d, str):
         fib["direction"] = _choice("circumferential", "radial")("fibres.direction", d)
     else:
-        v = _vector3("fibres.direction", d)
-        if sum(c * c for c in v) == 0:
-            raise _Bad("fibres.direction", "must not be the zero vector")
-        fib["direction"] = v
-    if sum(c * c for c in fib["axis"]) == 0:
-        raise _Bad("fibres.axis", "must not be the zero vector")
+        fib["direction"] = _unit("fibres.direction", _vector3("fibres.direction", d))
+    fib["axis"] = _unit("fibres.axis", fib["axis"])
+    if fib["centre"] is not None and max(abs(c) for c in fib["centre"]) > MAX_LENGTH_MM:
+        raise _Bad("fibres.centre", f"{fib['centre']} is farther than {MAX_LENGTH_MM:g} mm from "
+                   "the origin (lengths are in mm)")
 
 
 def _check_probes(probes) -> list:

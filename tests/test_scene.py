@@ -56,6 +56,8 @@ def test_pressure_units(text, value):
     ({"mesh.radius": "2000 m"}, ["mesh.radius", "longer than"]),
     ({"solver.quadrature_degree": 200}, ["solver.quadrature_degree", "at most 20"]),
     ({"fibres.direction": [0, 0, 0]}, ["fibres.direction", "zero"]),
+    ({"fibres.axis": [0, 0, 0]}, ["fibres.axis", "zero"]),
+    ({"fibres.centre": [1e300, 0, 0]}, ["fibres.centre", "farther than 1e+06 mm"]),
     ({"fibres.direction": "spiral"}, ["fibres.direction", "circumferential"]),
     ({"output.probes": [{"name": "a", "point": [0, 0]}]}, ["output.probes[0].point"]),
     ({"mesh.generator": "file", "mesh.file": "no/such.vtu"}, ["mesh.file", "no such file"]),
@@ -81,6 +83,16 @@ def test_bad_values(change, words):
     assert "\n" not in msg and msg.startswith("<dict>: ")
     for w in words:
         assert w in msg, msg
+
+
+@pytest.mark.parametrize("given", [[1e200, 1e200, 0.0], [1e-200, 1e-200, 0.0], [3.0, 3.0, 0.0]])
+def test_fibre_vectors_are_unit_vectors_at_any_scale(given):
+    """A direction or axis of any length is its unit vector ([1e200, 1e200, 0] overflowed to
+    NaN directions and a stop, exit code 3, until session 62)."""
+    s = load_scene(BASE).with_changes({"fibres.direction": given, "fibres.axis": given})
+    half = 0.5 ** 0.5
+    assert s["fibres"]["direction"] == pytest.approx([half, half, 0.0], rel=1e-15)
+    assert s["fibres"]["axis"] == pytest.approx([half, half, 0.0], rel=1e-15)
 
 
 def test_bad_files(tmp_path):
