@@ -641,6 +641,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
         _setup_logging(args.verbose)
+        _no_empty_options(args)
         with given_back_if_unused():   # (an --out claimed, then an input error: not left)
             return args.func(args)
     except InputError as e:
@@ -655,6 +656,20 @@ def main(argv: list[str] | None = None) -> int:
     except Exception:
         _abort_the_job()
         raise
+
+
+#: options whose empty value ("--out ''", "--sets ''") would otherwise mean their default
+_NAMED_BY_OPTIONS = {"out": "a directory or file", "sets": "set names",
+                     "problems": "problem names", "leaflet": "a leaflet"}
+
+
+def _no_empty_options(args) -> None:
+    """An option given an empty value is an input error: a script's empty variable after
+    --out wrote to the default results/NAME, and after --sets or --problems ran them all."""
+    for name, what in _NAMED_BY_OPTIONS.items():
+        v = getattr(args, name, None)
+        if isinstance(v, str) and not v.strip(" ,"):
+            raise InputError(f"--{name}: empty; give {what}")
 
 
 def _abort_the_job() -> None:

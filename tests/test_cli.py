@@ -104,8 +104,14 @@ def test_valve_line_puts_the_trace_length_beside_the_stepped_one():
     (["biaxial", "--points", "100000000000"], ["--points", "at most 100,000"]),  # (745 GiB)
     (["biaxial", "--leaflet", "middle"], ["--leaflet", "middle"]),
     (["nonsense"], ["nonsense"]),
+    # (session 62: an empty value meant the default: results/NAME, every set, every problem)
+    (["biaxial", "--sets", ""], ["--sets: empty"]),
+    (["bench", "--problems", ",", "--out", "never"], ["--problems: empty"]),
+    (["run", "scripts/scenes/disk_mny.toml", "--out", ""], ["--out: empty"]),
 ])
-def test_bad_input_exits_2_with_one_line(tmp_path, capsys, args, words):
+def test_bad_input_exits_2_with_one_line(tmp_path, capsys, args, words, monkeypatch):
+    monkeypatch.chdir(tmp_path)   # (nothing of a refused run may appear here)
+    args = [str(Path(__file__).parents[1] / a) if a.endswith(".toml") else a for a in args]
     out = tmp_path / "never"
     assert main(args + ["--out", str(out)] if args[0] == "biaxial" else args) == 2
     err = capsys.readouterr().err
@@ -114,6 +120,7 @@ def test_bad_input_exits_2_with_one_line(tmp_path, capsys, args, words):
     assert "Traceback" not in err
     for w in words:
         assert w in lines[0]
+    assert not any(tmp_path.iterdir())
     assert not out.exists()  # nothing written on bad input
 
 
