@@ -595,18 +595,31 @@ def _check_repair(rep: dict, data: dict) -> None:
                        f"1), got {r['depth']:g}")
 
 
-def _check_targets(data: dict, base_dir: Path) -> None:
+def _points_file(key: str, value, base_dir: Path):
+    """(path, (N, 3) points) of the CSV of points a scene key names; points beyond a
+    kilometre are refused (an annulus target of radius 1e6 mm asked for 1.4 PiB)."""
+    import numpy as np
+
     from mvfem.meshes.io import read_points
 
+    p = _existing_file(key, value, base_dir)
+    try:
+        pts = read_points(p)
+    except ValueError as e:
+        raise _Bad(key, str(e)) from None
+    far = np.flatnonzero(np.abs(pts).max(axis=1) > MAX_LENGTH_MM) if len(pts) else []
+    if len(far):
+        raise _Bad(key, f"{p}: point {far[0]} {pts[far[0]].tolist()} is farther than "
+                   f"{MAX_LENGTH_MM:g} mm from the origin (coordinates are in mm)")
+    return p, pts
+
+
+def _check_targets(data: dict, base_dir: Path) -> None:
     for section in ("annulus", "papillary"):
         t = data[section]["target"]
         if t is None:
             continue
-        p = _existing_file(f"{section}.target", t, base_dir)
-        try:
-            pts = read_points(p)
-        except ValueError as e:
-            raise _Bad(f"{section}.target", str(e)) from None
+        p, pts = _points_file(f"{section}.target", t, base_dir)
         if section == "annulus" and len(pts) < 3:
             raise _Bad("annulus.target", f"{p}: a loop needs at least 3 points, got {len(pts)}")
         data[section]["target"] = str(p)
@@ -620,18 +633,12 @@ def _check_targets(data: dict, base_dir: Path) -> None:
 
 
 def _check_valve_files(mesh: dict, base_dir: Path) -> None:
-    from mvfem.meshes.io import read_points
-
     for key in ("annulus", "papillary"):
         if mesh[key] is None:
             continue
         if mesh["generator"] != "valve":
             raise _Bad(f"mesh.{key}", "only for generator = \"valve\"")
-        p = _existing_file(f"mesh.{key}", mesh[key], base_dir)
-        try:
-            read_points(p)
-        except ValueError as e:
-            raise _Bad(f"mesh.{key}", str(e)) from None
+        p, _ = _points_file(f"mesh.{key}", mesh[key], base_dir)
         mesh[key] = str(p)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from mvfem.errors import InputError
@@ -93,6 +94,24 @@ def test_fibre_vectors_are_unit_vectors_at_any_scale(given):
     half = 0.5 ** 0.5
     assert s["fibres"]["direction"] == pytest.approx([half, half, 0.0], rel=1e-15)
     assert s["fibres"]["axis"] == pytest.approx([half, half, 0.0], rel=1e-15)
+
+
+def test_point_files_beyond_a_kilometre_are_refused(tmp_path):
+    """A loop of points 1e7 mm from the origin (an annulus target in the wrong unit) is
+    refused naming the file and the point: until session 62 it asked for 1.4 PiB after the
+    solve, in a traceback."""
+    t = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    far = tmp_path / "far.csv"
+    np.savetxt(far, np.c_[1e7 * np.cos(t), 1e7 * np.sin(t), 0 * t], delimiter=",")
+    near = tmp_path / "near.csv"
+    np.savetxt(near, np.c_[9 * np.cos(t), 9 * np.sin(t), 0 * t], delimiter=",")
+    assert load_scene(BASE).with_changes({"annulus.target": str(near)})
+    with pytest.raises(InputError, match=r"annulus\.target: .*far\.csv: point 0 .* farther "
+                                         r"than 1e\+06 mm"):
+        load_scene(BASE).with_changes({"annulus.target": str(far)})
+    valve = {"mesh": {"generator": "valve", "annulus": str(far)}, "region": BASE["region"]}
+    with pytest.raises(InputError, match=r"mesh\.annulus: .*far\.csv: point 0"):
+        load_scene(valve)
 
 
 def test_bad_files(tmp_path):
