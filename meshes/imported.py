@@ -54,6 +54,10 @@ __all__ = ["ImportedValve", "check_plain_surface", "check_surface", "refine_surf
 
 logger = logging.getLogger(__name__)
 
+#: the farthest a file's node may lie from the origin (mm: a kilometre; beyond it a unit is
+#: mistaken, and at 1e200 the areas overflow)
+MAX_COORDINATE_MM = 1e6
+
 #: leaflet names of the ``leaflet`` values when a scene gives no ``mesh.labels``
 DEFAULT_LABELS = {1: "anterior", 2: "posterior"}
 #: file formats that keep the line cells and point data of a valve file (meshio by extension)
@@ -353,6 +357,11 @@ def _check_finite(points, tri, used, where: str, cells: str) -> float:
     if not finite.all():
         raise ValueError(f"{where}: {int(np.sum(~finite))} node(s) have non-finite coordinates "
                          f"(first: node {int(used[~finite][0])})")
+    far = np.abs(points[used]).max(axis=1, initial=0.0) > MAX_COORDINATE_MM
+    if far.any():   # (1e200 overflowed in the checks below: a message without the file's name)
+        raise ValueError(f"{where}: {int(far.sum())} node(s) lie farther than "
+                         f"{MAX_COORDINATE_MM:g} mm from the origin (first: node "
+                         f"{int(used[far][0])}); coordinates are in mm")
     diag = float(np.linalg.norm(np.ptp(points[np.unique(tri)], axis=0))) if len(tri) else 0.0
     if not diag > 0:
         raise ValueError(f"{where}: the {cells} have no extent")

@@ -518,6 +518,8 @@ def _plain_square(tmp_path, case: str):
     data = {"leaflet": [leaflet]}
     if case == "nan node":
         pts[7, 2] = np.nan
+    elif case == "scaled by 1e200":
+        pts *= 1e200
     elif case == "zero-area triangle":
         pts = np.vstack([pts, [[40.0, 0, 0], [41.0, 0, 0], [42.0, 0, 0]]])
         tri = np.vstack([tri, [[n * n, n * n + 1, n * n + 2]]])
@@ -536,6 +538,7 @@ def _plain_square(tmp_path, case: str):
 
 PLAIN_BAD = {
     "nan node": ["mesh.file", "plain.vtu", "non-finite coordinates"],
+    "scaled by 1e200": ["mesh.file", "plain.vtu", "farther than 1e+06 mm", "in mm"],
     "zero-area triangle": ["mesh.file", "plain.vtu", "degenerate (zero-area)"],
     "duplicate triangle": ["mesh.file", "plain.vtu", "duplicate triangle"],
     "fractional leaflet": ["mesh.file", "plain.vtu", "must be integers"],
