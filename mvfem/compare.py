@@ -220,7 +220,7 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
     """
     import hashlib
 
-    from mvfem.outputs import prepare_out
+    from mvfem.outputs import check_out, prepare_out
     from mvfem.scene import load_scene
     from mvfem.study import (Case, RunSpec, Study, _leaflet_of, mesh_line, one_mesh_runs,
                              run_study)
@@ -232,6 +232,10 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
         base.with_changes(changes)
     if not repairs:
         raise InputError("--repairs: give at least one repair file")
+    if processes is not None and (isinstance(processes, bool) or not isinstance(processes, int)
+                                  or processes < 1):
+        raise InputError(f"--processes: expected a positive integer, got {processes!r}")
+    check_out(out)   # (before the repairs' meshes are built: seconds, and their lines)
     if diastolic is not None and not diastolic < 0:
         raise InputError(f"--diastolic: expected a negative (atrial-side) pressure, got "
                          f"{diastolic:g} Pa")

@@ -24,6 +24,22 @@ RUN_FILES = ("summary.json", "fields.xdmf", "fields.h5", "chordae.csv",
              "distance.vtu", "map_distance.png")
 
 
+def check_out(out: str | os.PathLike, option: str = "--out") -> None:
+    """Raise the :class:`InputError` :func:`prepare_out` would for what is at ``out`` (a file,
+    a user's directory that is not empty), without making anything: a command that builds
+    meshes before it claims its directory says so first."""
+    path = Path(out)
+    try:
+        if path.exists() and not path.is_dir():
+            raise InputError(f"{option} {path}: exists and is not a directory")
+        if path.is_dir() and any(path.iterdir()) and not (path / MARKER).exists():
+            raise InputError(f"{option} {path}: directory exists, is not empty and was not "
+                             "written by mvfem; choose a new directory")
+    except OSError as e:   # (a name too long, no permission to list it)
+        raise InputError(f"{option} {path}: cannot be used as the output directory "
+                         f"({e.strerror or e})") from None
+
+
 def prepare_out(out: str | os.PathLike, option: str = "--out") -> Path:
     """Create the output directory, or reuse one that mvfem made before.
 
@@ -33,11 +49,7 @@ def prepare_out(out: str | os.PathLike, option: str = "--out") -> Path:
     """
     path = Path(out)
     try:
-        if path.exists() and not path.is_dir():
-            raise InputError(f"{option} {path}: exists and is not a directory")
-        if path.is_dir() and any(path.iterdir()) and not (path / MARKER).exists():
-            raise InputError(f"{option} {path}: directory exists, is not empty and was not "
-                             "written by mvfem; choose a new directory")
+        check_out(path, option)
         new = [p for p in (path, *path.parents) if not p.exists()][::-1]  # (outermost first)
         marked = (path / MARKER).exists()
         path.mkdir(parents=True, exist_ok=True)

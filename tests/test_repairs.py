@@ -452,6 +452,27 @@ def test_repair_compare_refuses_bad_paths(option, value, tmp_path):
     assert not (out / "runs").exists()
 
 
+@pytest.mark.parametrize("case", ["out is a file", "processes 0"])
+def test_repair_compare_refuses_its_options_before_meshing(case, tmp_path):
+    """An --out that is a file or --processes 0 is one line, exit 2, said before any repair's
+    mesh is built (they came after the meshes' lines, seconds into the command)."""
+    good = tmp_path / "clip.toml"
+    good.write_text('[[repair.clip]]\nat = 0.5\n')
+    out = tmp_path / "cmp"
+    extra = []
+    if case == "out is a file":
+        out.write_text("mine")
+    else:
+        extra = ["--processes", "0"]
+    r = _cli("repair-compare", str(DEMO), "--repairs", str(good), "--out", str(out), *extra,
+             "--set", "mesh.size=5.0")
+    assert r.returncode == 2, r.stderr[-2000:]
+    lines = r.stderr.strip().splitlines()
+    word = "--out" if case == "out is a file" else "--processes"
+    assert len(lines) == 1 and lines[0].startswith(f"mvfem: error: {word}"), r.stderr
+    assert out.is_file() if case == "out is a file" else not out.exists()
+
+
 def test_repair_compare_ranges_over_the_solvers_paths(tmp_path):
     """`repair-compare --paths 10,40 --weights 0.05` on the 5 mm demo with a clip (a
     prescribed motion: its ties drawn tight over solver.ramp_steps): the clip is closed again
