@@ -21,6 +21,23 @@ def _view_basis(surface):
     return right, up, axis
 
 
+def _leaflet_places(p2, cells, cell_tag, surface):
+    """(name, 2-D point) for each leaflet of the view: its facets' area-weighted centroid,
+    where its name is written on the maps."""
+    names = getattr(surface, "names", {}) or {}
+    if cell_tag is None or not len(cells):
+        return []
+    tri = p2[cells]
+    area = 0.5 * np.abs(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+    out = []
+    for name in ("anterior", "posterior"):
+        sel = np.asarray(cell_tag) == names.get(name, -1)
+        if sel.any() and area[sel].sum() > 0:
+            out.append((name, (tri[sel].mean(axis=1) * area[sel, None]).sum(0)
+                        / area[sel].sum()))
+    return out
+
+
 def valve_maps(x, cells, cell_tag, values: dict, surface, out) -> list[Path]:
     """Write ``map_radial_strain.png`` and ``map_radial_stress.png``; returns their paths."""
     import matplotlib
@@ -50,12 +67,19 @@ def valve_maps(x, cells, cell_tag, values: dict, surface, out) -> list[Path]:
         if ring is not None and len(ring):
             r2 = np.stack([(ring - c) @ right, (ring - c) @ up], axis=1)
             ax.plot(*np.vstack([r2, r2[:1]]).T, "k-", lw=0.8)
+        for name, at in _leaflet_places(p2, cells, cell_tag, surface):
+            ax.text(*at, name, ha="center", va="center", fontsize=8,
+                    bbox={"boxstyle": "round", "fc": "white", "ec": "none", "alpha": 0.7})
         ax.autoscale_view()
         ax.set_aspect("equal")
         ax.set_xlabel("mm (anterolateral commissure left)")
         ax.set_ylabel("mm (anterior up)")
+        clipped = int(np.sum(stress < 1.0)) if key == "radial_stress" else 0
+        note = (f"\n{clipped} facets under 1 Pa (radial compression) drawn at 1 Pa"
+                if clipped else "")
         ax.set_title(f"closed valve seen from the atrium: {label}\n"
-                     f"colour range 5th-95th percentile [{lo:.3g}, {hi:.3g}]", fontsize=9)
+                     f"colour: 5th-95th percentile of both leaflets [{lo:.3g}, {hi:.3g}]"
+                     f"{note}", fontsize=8)
         fig.colorbar(pc, ax=ax, shrink=0.8, label=label)
         fig.tight_layout()
         path = Path(out) / f"map_{key}.png"

@@ -1973,3 +1973,21 @@ def test_the_level_by_level_hint_names_twice_the_size_refined_once():
     assert _level_by_level_hint(demo.with_changes({"mesh.size": 1.5, "mesh.refine": 1})) == ""
     imported = load_scene(root / "scripts" / "scenes" / "valve_imported.toml")
     assert _level_by_level_hint(imported) == ""
+
+
+def test_the_maps_name_the_leaflets_where_they_lie():
+    """The strain and stress maps write each leaflet's name at its facets' area-weighted
+    centroid in the view (session 62; the maps named neither): a unit square of 'anterior'
+    cells above a 2 x 2 square of 'posterior' ones, each split in two triangles."""
+    from types import SimpleNamespace
+
+    from mvfem.maps import _leaflet_places
+
+    p2 = np.array([[0, 0], [1, 0], [1, 1], [0, 1], [0, -2], [2, -2], [2, 0]], dtype=float)
+    cells = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 0]])
+    surface = SimpleNamespace(names={"anterior": 1, "posterior": 2, "annulus": 3})
+    places = dict(_leaflet_places(p2, cells, np.array([1, 1, 2, 2]), surface))
+    assert set(places) == {"anterior", "posterior"}
+    assert places["anterior"] == pytest.approx([0.5, 0.5])
+    assert places["posterior"] == pytest.approx([1.0, -1.0])
+    assert _leaflet_places(p2, cells, np.zeros(4, dtype=int), surface) == []

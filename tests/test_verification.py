@@ -294,6 +294,59 @@ def _neo_hookean_study(sizes):
     return exact, err
 
 
+def _graded_disk(path: Path, h_centre: float, h_edge: float) -> int:
+    """A disk of radius RADIUS triangulated (Delaunay) through rings of nodes whose spacing
+    grows linearly from ``h_centre`` at the centre to ``h_edge`` at the rim; written as a
+    plain membrane file (normals +z). Returns its triangles."""
+    import meshio
+    from scipy.spatial import Delaunay
+
+    pts, r = [[0.0, 0.0]], 0.0
+    while r < RADIUS:
+        h = h_centre + (h_edge - h_centre) * r / RADIUS
+        r = RADIUS if RADIUS - (r + h) < 0.3 * h else r + h
+        n = max(6, round(2 * np.pi * r / h))
+        t = (np.arange(n) + 0.5 * (len(pts) % 2)) * 2 * np.pi / n
+        pts += list(np.c_[r * np.cos(t), r * np.sin(t)])
+    P = np.asarray(pts)
+    tri = Delaunay(P).simplices
+    X = np.c_[P, np.zeros(len(P))]
+    down = np.cross(X[tri[:, 1]] - X[tri[:, 0]], X[tri[:, 2]] - X[tri[:, 0]])[:, 2] < 0
+    tri[down] = tri[down][:, [0, 2, 1]]
+    meshio.write(path, meshio.Mesh(X, [("triangle", tri)]))
+    return len(tri)
+
+
+def test_area_weighted_stress_percentiles_do_not_depend_on_the_grading(tmp_path):
+    """The Föppl-Hencky disk on a mesh graded from 0.25 mm at the centre to 2 mm at the rim:
+    the area-weighted percentiles of the facets' radial stress
+    (``regions.membrane.radial_cauchy_stress_Pa_area_weighted``) are Hencky's: his radial
+    stress falls monotonically from the centre, so its q-th percentile over the disk's area
+    is sigma_r at r = a sqrt(1 - q/100). Measured: within 1.1 % (the 5th percentile, in
+    the rim's 2 mm facets) and 0.6 % elsewhere. The per-facet percentiles, counting the
+    small central facets as often as the large ones, sit 3-6 % high between p5 and p75
+    (session 62; the demo valve's anterior median stress is 74 kPa per facet against 113
+    kPa by area, and moves from 57 to 100 kPa as the free edge's size goes from 0.7 to 2
+    mm, where the area-weighted one stays within 109-121 kPa)."""
+    path = tmp_path / "graded.vtu"
+    assert _graded_disk(path, 0.25, 2.0) > 500
+    scene = {"title": "graded Föppl-Hencky disk", "mesh": {"generator": "file",
+                                                           "file": str(path)},
+             "region": [{"law": "svk", "params": {"E": FH_E, "nu": FH_NU}, "thickness": FH_H}],
+             "fibres": {"centre": ORIGIN}, "load": {"pressure": FH_PRESSURE, "follower": False},
+             "solver": FH_SOLVER}
+    reg = _run(scene).summary["regions"]["membrane"]
+    fh = ref.foppl_hencky(FH_NU)
+    by_area = reg["radial_cauchy_stress_Pa_area_weighted"]
+    per_facet = reg["radial_cauchy_stress_Pa"]
+    for name, q in (("p5", 5), ("p25", 25), ("median", 50), ("p75", 75), ("p95", 95)):
+        hencky = float(fh.radial_stress([RADIUS * np.sqrt(1 - q / 100)], RADIUS, FH_H, FH_E,
+                                        FH_PRESSURE)[0])
+        assert by_area[name] == pytest.approx(hencky, rel=0.02 if q == 5 else 0.01), name
+        if q in (25, 50):
+            assert per_facet[name] > 1.03 * hencky, name
+
+
 def test_neo_hookean_inflation():
     """Pole height of the inflated disk (mu 20 kPa, 3 kPa, pole stretch 1.39) against the
     axisymmetric shooting solution: within 1 % at size 1.0 (measured 0.58 %), and falling
