@@ -330,9 +330,16 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD, meshing: bool = False):
             raise InputError(f"{scene.source}: mesh.labels: {m['file']} has no 'leaflet' cell "
                              "data for them to name")
         msh, tags = meshes.to_dolfinx(comm, raw, values)
-        # a label names cells only where the file has them ('leaflet' cell data)
+        # a label names cells only where the file has them ('leaflet' cell data); given
+        # labels name every value the file has, as a valve file's must (cells of a value
+        # without a name would be in no region, without material)
         present = set() if values is None else {int(v) for v in np.unique(values)}
-        names = {v: int(k) for k, v in (m["labels"] or {}).items() if int(k) in present}
+        given = {int(k): v for k, v in (m["labels"] or {}).items()}
+        unnamed = sorted(present - set(given)) if given else []
+        if unnamed:
+            raise InputError(f"{scene.source}: mesh.labels: 'leaflet' value {unnamed[0]} of "
+                             f"{m['file']} has no name (labels: {m['labels']})")
+        names = {v: k for k, v in given.items() if k in present}
         return meshes.SurfaceMesh(mesh=msh, cell_tags=tags, facet_tags=None, names=names,
                                   info={"generator": "file", "file": m["file"]})
     raise InputError(f"{scene.source}: mesh.generator: {gen!r} is not available")

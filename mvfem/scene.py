@@ -370,7 +370,8 @@ def _check_region(path: str, region: dict) -> dict:
 
 #: the longest length a generated mesh may have (mm: a kilometre). gmsh aborts the process
 #: on a disk of radius 1e9 mm (exit code 134, a C++ backtrace) and meshes a tube of 1e10
-#: mm without end (session 62); a length this long is a unit mistaken
+#: mm without end (session 62); a length this long is a unit mistaken. (A mesh file's nodes
+#: have the same bound, ``mvfem.meshes.imported.MAX_COORDINATE_MM``.)
 MAX_LENGTH_MM = 1e6
 
 

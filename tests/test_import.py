@@ -531,6 +531,8 @@ def _plain_square(tmp_path, case: str):
         data = {"leaflet": [leaflet + 0.5]}
     elif case in ("no leaflet data", "a label without cells"):
         data = {} if case == "no leaflet data" else {"leaflet": [np.ones_like(leaflet)]}
+    elif case == "a value without a label":
+        data = {"leaflet": [np.where(leaflet == 2, 3, 1)]}
     path = tmp_path / "plain.vtu"
     meshio.write(path, meshio.Mesh(pts, [("triangle", tri)], cell_data=data))
     return path
@@ -544,6 +546,7 @@ PLAIN_BAD = {
     "fractional leaflet": ["mesh.file", "plain.vtu", "must be integers"],
     "no leaflet data": ["mesh.labels", "plain.vtu", "no 'leaflet' cell data"],
     "a label without cells": ["region[1].label", "'right'", "not a label"],
+    "a value without a label": ["mesh.labels", "'leaflet' value 3", "plain.vtu", "no name"],
 }
 
 
