@@ -86,6 +86,9 @@ def _vector3(path, v):
     if (not isinstance(v, (list, tuple)) or len(v) != 3
             or any(isinstance(c, bool) or not isinstance(c, (int, float)) for c in v)):
         raise _Bad(path, f"expected a vector of three numbers [x, y, z], got {v!r}")
+    big = next((beyond_float(c) for c in v if beyond_float(c)), "")
+    if big:
+        raise _Bad(path, f"a component is {big}")
     if not all(math.isfinite(c) for c in v):
         raise _Bad(path, f"must be finite, got {v!r}")
     return [float(c) for c in v]

@@ -383,10 +383,14 @@ def _write_atomic(path: Path, text: str) -> None:
 
 
 def _read_json(path: Path) -> dict | None:
+    """The JSON object in ``path``; None where there is none (no file, not JSON, or JSON
+    that is not an object: a summary.json edited by hand to ``[1, 2]`` was an
+    AttributeError traceback)."""
     try:
-        return json.loads(path.read_text())
+        data = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
+    return data if isinstance(data, dict) else None
 
 
 def _spec_record(spec: RunSpec) -> dict:

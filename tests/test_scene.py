@@ -72,6 +72,9 @@ def test_pressure_units(text, value):
     ({"mesh.radius": 10**400}, ["mesh.radius", "401 digits", "beyond the range of a float"]),
     ({"solver.max_it": -10**309}, ["solver.max_it", "310 digits"]),
     ({"mesh.size": 10**400}, ["mesh.size", "401 digits"]),
+    ({"fibres.centre": [10**320, 0, 0]}, ["fibres.centre", "a component is an integer of 321"]),
+    ({"output.probes": [{"name": "a", "point": [0, -10**320, 0]}]},
+     ["output.probes[0].point", "321 digits"]),
     # (session 62: a path through a value, not a table, was a TypeError)
     ({"region.0.law.a.b": 1}, ["--set region.0.law.a.b", "region.0.law is not a table"]),
     ({"mesh.radius.x.y": 1}, ["--set mesh.radius.x.y", "mesh.radius is not a table"]),

@@ -300,6 +300,19 @@ def test_failed_run_is_recorded_not_fatal(tmp_path):
     assert res["ran"] == 1 and status.stat().st_mtime_ns != mtime
 
 
+@pytest.mark.parametrize("text, read", [('[1, 2]', None), ('"str"', None), ('{"a": 1', None),
+                                        ('{"a": 1}', {"a": 1})])
+def test_a_runs_json_that_is_not_an_object_counts_as_none(tmp_path, text, read):
+    """A run's summary.json, run.json or status.json is read as a JSON object or not at all:
+    a summary.json edited to ``[1, 2]`` made the study's next start an AttributeError
+    traceback (session 62); now that run is to do again."""
+    from mvfem.study import _read_json
+
+    path = tmp_path / "summary.json"
+    path.write_text(text)
+    assert _read_json(path) == read
+
+
 def test_timeout_is_a_failure(tmp_path):
     path = _write(tmp_path, 'sets = ["SVK"]\ntimeout = 0.3\nbiaxial = false\n'
                   '[[case]]\nscene = "disk.toml"\n')
