@@ -365,6 +365,35 @@ def write_xdmf(model, fields: dict, path) -> None:
             f.write_function(fn)
 
 
+def _summary_problem(written: dict) -> str:
+    """What in a run's summary.json a resume cannot start from ('' for nothing): the values
+    it reads (the load reached, the pseudo-time weights) of the wrong type or not finite, as
+    a hand-edited file may hold (they were tracebacks, or a ZeroDivisionError mid-run)."""
+    import math
+
+    def number(v, positive=False):
+        return (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                and (v > 0 or not positive))
+
+    p = written.get("pressure_Pa")
+    if p is not None and not number(p):
+        return f"has pressure_Pa {p!r}, not a finite number"
+    pt = written.get("pseudo_time")
+    if pt is None:
+        return ""
+    if not isinstance(pt, dict):
+        return f"has pseudo_time {pt!r}, not a table"
+    for key in ("weight", "threshold"):
+        if not number(pt.get(key), positive=True):
+            return f"has pseudo_time.{key} {pt.get(key)!r}, not a positive number"
+    if not isinstance(pt.get("symmetric"), bool):
+        return f"has pseudo_time.symmetric {pt.get('symmetric')!r}, not true or false"
+    w = pt.get("convex_window")
+    if isinstance(w, bool) or not isinstance(w, int) or w < 0:
+        return f"has pseudo_time.convex_window {w!r}, not a whole number"
+    return ""
+
+
 def read_state(model, directory, option: str = "--resume") -> dict:
     """Set ``model.u`` to the displacement an earlier run of the same mesh wrote in
     ``directory`` (its ``fields.h5``: the P1 displacement at the mesh's nodes, matched to this
@@ -392,6 +421,8 @@ def read_state(model, directory, option: str = "--resume") -> dict:
             written = None
         if not isinstance(written, dict):
             error = f"{where}: no run's summary.json there"
+        elif _summary_problem(written):
+            error = f"{where}: its summary.json {_summary_problem(written)}"
         elif not h5.is_file():
             error = (f"{where}: no fields.h5 there (the state is written with output.xdmf = "
                      "true, the default)")
@@ -411,6 +442,8 @@ def read_state(model, directory, option: str = "--resume") -> dict:
             uw = np.asarray(f["Function/displacement/0"], dtype=float)
         if xw.ndim != 2 or xw.shape[1] != 3 or uw.shape != xw.shape:
             raise ValueError(f"geometry {xw.shape}, displacement {uw.shape}")
+        if not (np.isfinite(uw).all() and np.isfinite(xw).all()):
+            raise ValueError("non-finite coordinates or displacements")
     except (OSError, KeyError, ValueError) as e:
         raise InputError(f"{where}: its fields.h5 cannot be read as a run's state "
                          f"({str(e) or type(e).__name__})") from None

@@ -99,6 +99,12 @@ def test_load_steps_resume_from_the_pressure_reached(tmp_path):
     ("no fields", "no fields.h5 there"),
     ("accuracy", "asks for mesh.accuracy"),
     ("broken fields", "its fields.h5 cannot be read as a run's state"),
+    # (session 62: a summary.json edited by hand was a ValueError, TypeError or
+    # ZeroDivisionError traceback; a NaN in the state was blamed on solver.petsc_options)
+    ("pressure edited", "its summary.json has pressure_Pa 'x', not a finite number"),
+    ("pseudo_time edited", "its summary.json has pseudo_time 'x', not a table"),
+    ("weight edited", "its summary.json has pseudo_time.weight 0, not a positive number"),
+    ("NaN state", "non-finite coordinates or displacements"),
 ])
 def test_a_resume_from_what_cannot_be_resumed_is_one_line(tmp_path, capsys, case, words):
     scene = tmp_path / "disk.toml"
@@ -106,8 +112,21 @@ def test_a_resume_from_what_cannot_be_resumed_is_one_line(tmp_path, capsys, case
                      '[[region]]\nlaw = "svk"\nparams = "SVK"\n')
     earlier = tmp_path / "earlier"
     args = []
-    if case in ("other mesh", "no fields", "broken fields"):
+    if case in ("other mesh", "no fields", "broken fields", "pressure edited",
+                "pseudo_time edited", "weight edited", "NaN state"):
         assert main(["run", str(scene), "--out", str(earlier)]) == 0
+    edits = {"pressure edited": {"pressure_Pa": "x"}, "pseudo_time edited": {"pseudo_time": "x"},
+             "weight edited": {"pseudo_time": {"weight": 0, "threshold": 1.0,
+                                               "symmetric": False, "convex_window": 0}}}
+    if case in edits:
+        summary = json.loads((earlier / "summary.json").read_text())
+        (earlier / "summary.json").write_text(json.dumps({**summary, **edits[case]}))
+    elif case == "NaN state":
+        import h5py
+
+        with h5py.File(earlier / "fields.h5", "r+") as f:
+            u = f["Function/displacement/0"]
+            u[3, 0] = float("nan")
     if case == "other mesh":
         args = ["--set", "mesh.size=2.5"]
     elif case == "no fields":
