@@ -35,6 +35,9 @@ __all__ = ["calibrate", "parse_fit", "parse_bounds", "parse_start", "OVERLAP_MM"
 log = logging.getLogger(__name__)
 #: a start whose mean distance to the reference exceeds this does not overlap the valve, mm
 OVERLAP_MM = 10.0
+#: a reference surface this many times larger or smaller across than the open valve is not
+#: the same valve closed (a file in metres: 1000 x smaller), refused before any solve
+EXTENT_RATIO = 3.0
 #: default bounds of every fitted key (a chordal length factor)
 DEFAULT_BOUNDS = (0.8, 1.4)
 #: the optimisers stop when the parameters are known to this (absolute)
@@ -203,6 +206,14 @@ def calibrate(scene, reference: str | Path, fit: list[str], out: str | Path,
         raise InputError(f"--grid {grid}: {grid}^{n} + 1 = {grid ** n + 1} evaluations with the "
                          f"start, more than --max-evals {max_evals}")
     scene_at(start)  # the reference reads, the keys take numbers: before anything is written
+    for i, key in enumerate(fit):  # every value the search may try is one the scene takes
+        for end in bounds[i]:
+            try:
+                scene_at([end if j == i else v for j, v in enumerate(start)])
+            except InputError as e:
+                raise InputError(f"--bounds {bounds[i][0]:g}:{bounds[i][1]:g}: {key} = {end:g} "
+                                 f"is not a value the scene takes "
+                                 f"({str(e).rsplit(': ', 1)[-1]})") from None
     _check_overlap(scene, ref, comm)
     out = Path(out)
     prepare_out_on_root(out, comm)
@@ -326,6 +337,11 @@ def _check_overlap(scene, ref: Path, comm) -> None:
     hi = comm.allreduce(x.max(axis=0) if len(x) else np.full(3, -np.inf), op=MPI.MAX)
     r = read_reference(ref).x
     rlo, rhi = r.min(axis=0), r.max(axis=0)
+    size, ref_size = float(np.linalg.norm(hi - lo)), float(np.linalg.norm(rhi - rlo))
+    if not size / EXTENT_RATIO <= ref_size <= size * EXTENT_RATIO:  # (a solve would say so)
+        raise InputError(f"--reference {ref}: its extent, {ref_size:.3g} mm across, is not "
+                         f"that of the open valve, {size:.3g} mm, within a factor of "
+                         f"{EXTENT_RATIO:g} (are its coordinates in mm?)")
     if np.any(rlo > hi + OVERLAP_MM) or np.any(rhi < lo - OVERLAP_MM):
         raise InputError(f"--reference {ref}: does not overlap the valve: its bounding box "
                          f"{np.round(rlo, 1).tolist()}..{np.round(rhi, 1).tolist()} mm lies "

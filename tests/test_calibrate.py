@@ -34,6 +34,7 @@ def reference(tmp_path_factory):
     tri = np.array([[0, 1, 2], [0, 2, 3]])
     write_surface(d / "near.vtu", x, tri, cell_data={"leaflet": np.array([1, 2])})
     write_surface(d / "far.vtu", x + [80.0, 0, 0], tri, cell_data={"leaflet": np.array([1, 2])})
+    write_surface(d / "metres.vtu", 1e-3 * x, tri, cell_data={"leaflet": np.array([1, 2])})
     return d
 
 
@@ -61,10 +62,17 @@ FIT = "chordae.marginal.length_factor"
     ("grid too big", ["--reference", "{near}", "--fit", f"{FIT},chordae.basal.length_factor",
                       "--grid", "6"], "6^2 + 1 = 37"),
     ("grid of one", ["--reference", "{near}", "--fit", FIT, "--grid", "1"], "2 or more"),
+    # (session 62: these two were refused after the first solve, the earlier calibration in
+    # --out already removed)
+    ("metres", ["--reference", "{metres}", "--fit", FIT], "are its coordinates in mm?"),
+    ("bounds the scene refuses", ["--reference", "{near}", "--fit", FIT, "--bounds=-1:1",
+                                  "--start", "0.5"],
+     f"--bounds -1:1: {FIT} = -1 is not a value the scene takes (must be positive"),
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, reference, case, args, words):
     """Each bad input: exit code 2, one line on stderr naming what is wrong, nothing written."""
-    args = [a.format(far=reference / "far.vtu", near=reference / "near.vtu") for a in args]
+    args = [a.format(far=reference / "far.vtu", near=reference / "near.vtu",
+                     metres=reference / "metres.vtu") for a in args]
     r = _run(*args, "--out", str(tmp_path / "out"), cwd=tmp_path)
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2, r.stderr
