@@ -727,6 +727,12 @@ def _loop_frame(surface, scene: Scene) -> np.ndarray:
     return np.array([x, np.cross(z, x), z])
 
 
+#: an annulus target this many times longer or shorter than the valve's annulus is not that
+#: annulus moved (a loop in metres stopped at 63 % of its motion with advice on the mesh; 10
+#: x larger, with "a ring too small for this annulus?", session 62)
+TARGET_RATIO = 3.0
+
+
 def _loop_motion(scene: Scene, surface, V, dofs):
     """The clamped loop's prescribed displacement (``[annulus] target`` or ``[repair.ring]``):
     (Function holding it at the clamped dofs, those full values, info), or None."""
@@ -759,7 +765,14 @@ def _loop_motion(scene: Scene, surface, V, dofs):
                                         where=f"{scene.source}: repair.ring")
             info = {"kind": "ring", **info}
         else:
-            placed = match_loop(loop, read_points(target), frame, scene["annulus"]["match"])
+            aim = read_points(target)
+            here, there = _loop_length(loop), _loop_length(aim)
+            if not here / TARGET_RATIO <= there <= here * TARGET_RATIO:
+                raise InputError(f"{scene.source}: annulus.target: {target} is {there:.3g} mm "
+                                 f"around, the valve's annulus {here:.3g} mm: not the same "
+                                 f"annulus moved (within a factor of {TARGET_RATIO:g}; are "
+                                 "its coordinates in mm?)")
+            placed = match_loop(loop, aim, frame, scene["annulus"]["match"])
             info = {"kind": "annulus target", "file": target, "nodes": int(len(loop)),
                     "max_displacement_mm":
                         float(np.linalg.norm(placed - loop, axis=1).max())}

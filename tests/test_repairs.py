@@ -215,6 +215,30 @@ def _write_targets(tmp_path, scene, shift):
     return str(ann), str(pap)
 
 
+@pytest.mark.parametrize("scale", [1e-3, 10.0])
+def test_an_annulus_target_in_other_units_is_refused_before_the_solve(tmp_path, scale):
+    """The valve's own annulus written in metres (x 1e-3 about its centre) or 10 x larger:
+    not that annulus moved, so an input error naming the file and both lengths (until
+    session 62 they stopped part way through the motion, exit code 3, with advice on the
+    mesh or on "a ring too small"). Nothing is solved: ``PseudoTransient.run`` must not be
+    reached."""
+    from mpi4py import MPI
+
+    from mvfem.model import build_mesh
+    from mvfem.solver import PseudoTransient
+
+    scene = _coarse_rest_scene()
+    loop = build_mesh(scene, MPI.COMM_SELF).annulus_nodes()
+    ann = tmp_path / "annulus.csv"
+    centre = loop.mean(axis=0)
+    np.savetxt(ann, centre + scale * (loop - centre), delimiter=",", header="x,y,z")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(PseudoTransient, "run", lambda *a, **k: pytest.fail("solved"))
+        with pytest.raises(InputError, match=r"annulus\.target: .*annulus\.csv is .* mm "
+                                             r"around, the valve's annulus .* mm: not the same"):
+            mvfem.solve(scene.with_changes({"annulus.target": str(ann)}), progress=False)
+
+
 def test_translated_annulus_at_zero_pressure_moves_the_valve_rigidly(tmp_path):
     """Issue 9's verify item. The annulus moved by a known translation at zero pressure, no
     chordae (the open valve is then stress-free): every node moves by exactly that vector and
