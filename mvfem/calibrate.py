@@ -319,6 +319,11 @@ def calibrate(scene, reference: str | Path, fit: list[str], out: str | Path,
     say(f"calibrate: {', '.join(f'{k} = {v:.4f}' for k, v in result['fitted'].items())}; mean "
         f"error {before['mean_abs_error_mm']:.4f} -> {after['mean_abs_error_mm']:.4f} mm in "
         f"{len(rows)} evaluations, {result['time_s']:.0f} s")
+    if not after["converged"]:  # (its error is a state's short of equilibrium: say so)
+        done = sum(r["converged"] for r in rows)
+        say(f"  the best evaluation ({after['index']}) did NOT converge (equilibrium residual "
+            f"{after['equilibrium_residual']:.3g} of the load); {done} of {len(rows)} "
+            "evaluations converged (evaluations.csv)")
     return result
 
 

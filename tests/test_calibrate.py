@@ -100,6 +100,22 @@ def test_an_input_error_in_an_evaluation_leaves_no_directory(tmp_path, reference
     assert not (tmp_path / "out").exists()
 
 
+def test_a_calibration_whose_best_run_stopped_short_says_so(tmp_path, reference):
+    """Every evaluation stopped at solver.max_steps = 20 (the demo at 5 mm): the result line
+    is followed by one saying that the best evaluation did not converge and how many did (it
+    read as a calibration like any other, session 62)."""
+    from mvfem.calibrate import calibrate
+
+    base = mvfem.load_scene(DEMO).with_changes({"mesh.size": 5.0, "solver.max_steps": 20})
+    said = []
+    res = calibrate(base, reference / "near.vtu", [FIT], tmp_path / "out",
+                    bounds=[(0.9, 1.2)], max_evals=2, say=said.append)
+    assert not res["converged"] and res["evaluations"] == 2
+    assert said[-1].startswith(f"  the best evaluation ({res['best_evaluation']}) did NOT "
+                               "converge (equilibrium residual "), said
+    assert said[-1].endswith("0 of 2 evaluations converged (evaluations.csv)")
+
+
 @pytest.mark.slow
 def test_synthetic_truth(shared_tmp):
     """Close the demo valve at mesh size 4 mm with marginal length factor 1.1; write its closed
