@@ -36,8 +36,9 @@ log = logging.getLogger(__name__)
 #: a start whose mean distance to the reference exceeds this does not overlap the valve, mm
 OVERLAP_MM = 10.0
 #: a reference surface this many times larger or smaller across than the open valve is not
-#: the same valve closed (a file in metres: 1000 x smaller), refused before any solve
-EXTENT_RATIO = 3.0
+#: the same valve closed (a file in metres: 1000 x smaller; in cm, 10 x), refused before any
+#: solve; a part of a leaflet may be a few times smaller
+EXTENT_RATIO = 8.0
 #: default bounds of every fitted key (a chordal length factor)
 DEFAULT_BOUNDS = (0.8, 1.4)
 #: the optimisers stop when the parameters are known to this (absolute)
