@@ -327,21 +327,32 @@ def _build(raw: RawSurface, labels: dict[int, str] | None, where: str, report: b
     return (X, cells, cell_leaflet, b_edges, edge_values), extras
 
 
-def check_plain_surface(raw: RawSurface, where: str) -> None:
+def check_plain_surface(raw: RawSurface, where: str,
+                        labels: dict[int, str] | None = None) -> None:
     """Raise what a surface file without an annulus cannot be solved on, as a valve file's
     import does (:func:`_build`): cells naming nodes not in the file, nodes with non-finite
     coordinates, no extent, degenerate (zero-area) or duplicate triangles, 'leaflet' cell
-    data that are not integers."""
+    data that are not integers or, where ``labels`` are given, that they do not name (cells
+    of such a value would be in no region)."""
     points = np.asarray(raw.points, dtype=np.float64)
     tri = np.asarray(raw.triangles, dtype=np.int64).reshape(-1, 3)
     _check_indices(points, tri, np.zeros((0, 2), dtype=np.int64), where)
     diag = _check_finite(points, tri, np.unique(tri), where, "cells")
     _check_cells(points, tri, where, diag)
     if "leaflet" in raw.cell_data:
-        values = np.asarray(raw.cell_data["leaflet"]).reshape(len(tri), -1)[:, 0]
-        if not np.issubdtype(values.dtype, np.number) or not np.all(np.isfinite(values)) \
-                or not np.all(values == np.round(values)):
-            raise ValueError(f"{where}: 'leaflet' cell data must be integers")
+        if labels:
+            _leaflet_values(raw, labels, where, len(tri))
+        else:
+            _leaflet_ints(raw, where, len(tri))
+
+
+def _leaflet_ints(raw: RawSurface, where: str, ntri: int) -> np.ndarray:
+    """The file's 'leaflet' cell data, one integer a triangle (refused if not integers)."""
+    values = np.asarray(raw.cell_data["leaflet"]).reshape(ntri, -1)[:, 0]
+    if not np.issubdtype(values.dtype, np.number) or not np.all(np.isfinite(values)) \
+            or not np.all(values == np.round(values)):
+        raise ValueError(f"{where}: 'leaflet' cell data must be integers")
+    return values.astype(np.int64)
 
 
 def _check_indices(points, tri, lines, where: str) -> None:
@@ -375,11 +386,7 @@ def _leaflet_values(raw: RawSurface, labels, where: str, ntri: int):
         found = ", ".join(sorted(raw.cell_data)) or "none"
         raise ValueError(f"{where}: no 'leaflet' cell data (an integer leaflet label on every "
                          f"triangle or quad); cell data found: {found}")
-    values = np.asarray(raw.cell_data["leaflet"]).reshape(ntri, -1)[:, 0]
-    if not np.issubdtype(values.dtype, np.number) or not np.all(np.isfinite(values)) \
-            or not np.all(values == np.round(values)):
-        raise ValueError(f"{where}: 'leaflet' cell data must be integers")
-    values = values.astype(np.int64)
+    values = _leaflet_ints(raw, where, ntri)
     given = labels is not None
     labels = DEFAULT_LABELS if labels is None else {int(k): str(v) for k, v in labels.items()}
     present = np.unique(values)

@@ -207,12 +207,12 @@ def calibrate(scene, reference: str | Path, fit: list[str], out: str | Path,
         raise InputError(f"--grid {grid}: {grid}^{n} + 1 = {grid ** n + 1} evaluations with the "
                          f"start, more than --max-evals {max_evals}")
     scene_at(start)  # the reference reads, the keys take numbers: before anything is written
-    for i, key in enumerate(fit):  # every value the search may try is one the scene takes
-        for end in bounds[i]:
+    for key, ends in zip(fit, bounds):  # every value the search may try is one the scene takes
+        for end in ends:
             try:
-                scene_at([end if j == i else v for j, v in enumerate(start)])
+                scene.with_changes({key: float(end)})
             except InputError as e:
-                raise InputError(f"--bounds {bounds[i][0]:g}:{bounds[i][1]:g}: {key} = {end:g} "
+                raise InputError(f"--bounds {ends[0]:g}:{ends[1]:g}: {key} = {end:g} "
                                  f"is not a value the scene takes "
                                  f"({str(e).rsplit(': ', 1)[-1]})") from None
     _check_overlap(scene, ref, comm)

@@ -366,7 +366,6 @@ def _cmd_mesh(args) -> int:
     tags = np.zeros(len(cells), dtype=np.int32)
     if surface.cell_tags is not None:
         tags[surface.cell_tags.indices] = surface.cell_tags.values
-    before = {t for t in targets if t.exists() or t.is_symlink()}
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         if valve:  # the import format of CONTRACT.md: leaflets, annulus, chordae
@@ -378,7 +377,7 @@ def _cmd_mesh(args) -> int:
         surface.write_info(str(out) + ".json")
     except OSError as e:   # (a parent that is a file, no permission, a read-only disk)
         for t in targets:  # leave nothing half-made of what was not there before
-            if t not in before and t.is_file():
+            if t not in taken and t.is_file():
                 t.unlink()
         where = f" {e.filename}" if e.filename and str(e.filename) != str(out) else ""
         raise InputError(f"--out {out}:{where} cannot be written ({e.strerror or e})") from None
@@ -660,7 +659,7 @@ def main(argv: list[str] | None = None) -> int:
 
 #: options whose empty value ("--out ''", "--sets ''") would otherwise mean their default
 _NAMED_BY_OPTIONS = {"out": "a directory or file", "sets": "set names",
-                     "problems": "problem names", "leaflet": "a leaflet"}
+                     "problems": "problem names"}
 
 
 def _no_empty_options(args) -> None:

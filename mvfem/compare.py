@@ -222,8 +222,8 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
 
     from mvfem.outputs import check_out, prepare_out
     from mvfem.scene import load_scene
-    from mvfem.study import (Case, RunSpec, Study, _leaflet_of, mesh_line, one_mesh_runs,
-                             run_study)
+    from mvfem.study import (Case, RunSpec, Study, _leaflet_of, checked_processes, mesh_line,
+                             one_mesh_runs, run_study)
 
     scene_path = Path(scene_path).resolve()
     base = load_scene(scene_path)
@@ -232,9 +232,8 @@ def compare(scene_path: str | Path, repairs: list, out: str | Path, processes: i
         base.with_changes(changes)
     if not repairs:
         raise InputError("--repairs: give at least one repair file")
-    if processes is not None and (isinstance(processes, bool) or not isinstance(processes, int)
-                                  or processes < 1):
-        raise InputError(f"--processes: expected a positive integer, got {processes!r}")
+    if processes is not None:
+        checked_processes(processes)
     check_out(out)   # (before the repairs' meshes are built: seconds, and their lines)
     if diastolic is not None and not diastolic < 0:
         raise InputError(f"--diastolic: expected a negative (atrial-side) pressure, got "

@@ -321,25 +321,18 @@ def build_mesh(scene: Scene, comm=MPI.COMM_WORLD, meshing: bool = False):
                              "no 'annulus' point data)")
         from mvfem.meshes.imported import check_plain_surface
 
-        try:
-            check_plain_surface(raw, m["file"])
-        except ValueError as e:
-            raise InputError(f"{scene.source}: mesh.file: {e}") from None
         values = raw.cell_data.get("leaflet")
         if m["labels"] and values is None:
             raise InputError(f"{scene.source}: mesh.labels: {m['file']} has no 'leaflet' cell "
                              "data for them to name")
+        try:  # (given labels must name every value the file has, as a valve file's must)
+            check_plain_surface(raw, m["file"], m["labels"])
+        except ValueError as e:
+            raise InputError(f"{scene.source}: mesh.file: {e}") from None
         msh, tags = meshes.to_dolfinx(comm, raw, values)
-        # a label names cells only where the file has them ('leaflet' cell data); given
-        # labels name every value the file has, as a valve file's must (cells of a value
-        # without a name would be in no region, without material)
+        # a label names cells only where the file has them ('leaflet' cell data)
         present = set() if values is None else {int(v) for v in np.unique(values)}
-        given = {int(k): v for k, v in (m["labels"] or {}).items()}
-        unnamed = sorted(present - set(given)) if given else []
-        if unnamed:
-            raise InputError(f"{scene.source}: mesh.labels: 'leaflet' value {unnamed[0]} of "
-                             f"{m['file']} has no name (labels: {m['labels']})")
-        names = {v: k for k, v in given.items() if k in present}
+        names = {v: int(k) for k, v in (m["labels"] or {}).items() if int(k) in present}
         return meshes.SurfaceMesh(mesh=msh, cell_tags=tags, facet_tags=None, names=names,
                                   info={"generator": "file", "file": m["file"]})
     raise InputError(f"{scene.source}: mesh.generator: {gen!r} is not available")

@@ -419,10 +419,11 @@ def read_state(model, directory, option: str = "--resume") -> dict:
             written = json.loads(summary.read_text())
         except (OSError, ValueError):
             written = None
+        problem = _summary_problem(written) if isinstance(written, dict) else ""
         if not isinstance(written, dict):
             error = f"{where}: no run's summary.json there"
-        elif _summary_problem(written):
-            error = f"{where}: its summary.json {_summary_problem(written)}"
+        elif problem:
+            error = f"{where}: its summary.json {problem}"
         elif not h5.is_file():
             error = (f"{where}: no fields.h5 there (the state is written with output.xdmf = "
                      "true, the default)")

@@ -37,8 +37,9 @@ class _Bad(Exception):
 def _number(path, v, minimum=None, positive=False, integer=False):
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise _Bad(path, f"expected a number, got {v!r}")
-    if beyond_float(v):
-        raise _Bad(path, beyond_float(v))
+    big = beyond_float(v)
+    if big:
+        raise _Bad(path, big)
     if integer and (not float(v).is_integer()):
         raise _Bad(path, f"expected an integer, got {v!r}")
     if not math.isfinite(v):
@@ -86,7 +87,7 @@ def _vector3(path, v):
     if (not isinstance(v, (list, tuple)) or len(v) != 3
             or any(isinstance(c, bool) or not isinstance(c, (int, float)) for c in v)):
         raise _Bad(path, f"expected a vector of three numbers [x, y, z], got {v!r}")
-    big = next((beyond_float(c) for c in v if beyond_float(c)), "")
+    big = next(filter(None, map(beyond_float, v)), "")
     if big:
         raise _Bad(path, f"a component is {big}")
     if not all(math.isfinite(c) for c in v):

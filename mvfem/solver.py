@@ -208,8 +208,7 @@ def _set_up_on_a_tiny_matrix(comm, prefix: str) -> None:
     """Set up a linear solver of the options under ``prefix`` on the identity of one row a
     rank (collective): its preconditioner and factorisation package are made, and refused
     if PETSc has no such thing."""
-    n = 1
-    A = PETSc.Mat().createAIJ(((n, None), (n, None)), nnz=(1, 0), comm=comm)
+    A = PETSc.Mat().createAIJ(((1, None), (1, None)), nnz=(1, 0), comm=comm)
     ksp = PETSc.KSP().create(comm)
     try:
         start, _ = A.getOwnershipRange()

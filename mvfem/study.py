@@ -382,6 +382,14 @@ def _write_atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def checked_processes(processes) -> int:
+    """``--processes`` as a count of runs at a time: an :class:`InputError` below 1."""
+    processes = int(processes)
+    if processes < 1:
+        raise InputError(f"--processes: must be at least 1, got {processes}")
+    return processes
+
+
 def _read_json(path: Path) -> dict | None:
     """The JSON object in ``path``; None where there is none (no file, not JSON, or JSON
     that is not an object: a summary.json edited by hand to ``[1, 2]`` was an
@@ -655,9 +663,7 @@ def run_study(study: Study | str | Path | dict, out: str | Path, processes: int 
 
     if not isinstance(study, Study):
         study = load_study(study)
-    processes = study.processes if processes is None else int(processes)
-    if processes < 1:
-        raise InputError(f"--processes: must be at least 1, got {processes}")
+    processes = checked_processes(study.processes if processes is None else processes)
     out = prepare_out(out).resolve()
     meshes = {}
     if one_mesh:  # (before this call's lock: the first runs are a call of their own)

@@ -32,8 +32,9 @@ def parse_quantity(value, units: dict[str, float], default_unit: str) -> float:
     if isinstance(value, bool):
         raise ValueError(f"expected a number or a string with a unit, got {value!r}")
     if isinstance(value, (int, float)):
-        if beyond_float(value):
-            raise ValueError(beyond_float(value))
+        big = beyond_float(value)
+        if big:
+            raise ValueError(big)
         x = float(value)
     elif isinstance(value, str):
         m = _NUMBER.match(value)

@@ -546,7 +546,8 @@ PLAIN_BAD = {
     "fractional leaflet": ["mesh.file", "plain.vtu", "must be integers"],
     "no leaflet data": ["mesh.labels", "plain.vtu", "no 'leaflet' cell data"],
     "a label without cells": ["region[1].label", "'right'", "not a label"],
-    "a value without a label": ["mesh.labels", "'leaflet' value 3", "plain.vtu", "no name"],
+    "a value without a label": ["mesh.file", "plain.vtu", "'leaflet' value 3 (16 cells) is "
+                                "not in mesh.labels"],
 }
 
 
